@@ -1,0 +1,53 @@
+"""Parameters and steps that several algorithms share."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..core.errors import CRSError, InputError
+from .spec import CRS, FILE, Feedback, Param
+
+POINT_CLOUD_FILTER = "LAS/LAZ point clouds (*.las *.laz);;Text point clouds (*.xyz *.txt *.csv);;All files (*)"
+RASTER_SUFFIXES = (".tif", ".tiff")
+
+
+def input_cloud(help_extra: str = "") -> Param:
+    return Param(
+        "INPUT", FILE, "Input point cloud (LAS/LAZ)",
+        file_filter=POINT_CLOUD_FILTER,
+        help="An airborne LiDAR tile: LAS or LAZ 1.0–1.4 (COPC too), or an x y z text file. "
+             "Coordinates in metres or feet are both fine; results keep the tile's CRS." + help_extra,
+    )
+
+
+def crs_override() -> Param:
+    return Param(
+        "CRS", CRS, "Override CRS", optional=True, advanced=True,
+        help="Use this CRS instead of the one stored in the file (needed for files without one), "
+             "e.g. EPSG:26912.",
+    )
+
+
+def load_cloud(args: dict, feedback: Feedback):
+    """Read INPUT (honouring the CRS override), insisting on a CRS, and tell the user its units."""
+    from ..core.io import read_cloud
+
+    cloud = read_cloud(args["INPUT"], crs=args.get("CRS") or None)
+    if cloud.crs is None:
+        raise CRSError(
+            f"{args['INPUT']}: the file has no coordinate reference system; "
+            "set the CRS parameter (for example EPSG:32632)"
+        )
+    feedback.info(
+        f"{Path(args['INPUT']).name}: {len(cloud):,} points, CRS {cloud.crs.name}, units {cloud.units.describe()}"
+    )
+    return cloud
+
+
+def is_raster(path: str) -> bool:
+    return str(path).lower().endswith(RASTER_SUFFIXES)
+
+
+def require_existing(path: str) -> str:
+    if not path or not Path(path).exists():
+        raise InputError(f"{path}: file not found")
+    return path

@@ -1,0 +1,71 @@
+"""Tree tops: sylva:treetops."""
+from __future__ import annotations
+
+import shapely
+
+from ..core.progress import scaled
+from ..core.table import VectorTable
+from .common import crs_override, is_raster, load_cloud, require_existing
+from .spec import ENUM, FILE, NUMBER, POINT, VECTOR_OUT, Algorithm, Feedback, Param, Result
+
+WINDOWS = ("fixed", "variable")
+
+
+def run(args: dict, feedback: Feedback) -> Result:
+    from ..core.raster import read_geotiff
+    from ..core.terrain import normalize
+    from ..core.tops import FixedWindow, VariableWindow, find_tree_tops
+
+    source = require_existing(args["INPUT"])
+    if is_raster(source):
+        target = read_geotiff(source)
+        crs = target.crs
+        feedback.info(f"{source}: canopy height model, {target.data.shape[1]} x {target.data.shape[0]} cells")
+    else:
+        cloud = load_cloud(args, feedback)
+        feedback.progress(0.05, "height above ground")
+        target = normalize(cloud)
+        crs = cloud.crs
+    window = FixedWindow(diameter_m=args["WINDOW_DIAMETER"]) if args["WINDOW"] == "fixed" else VariableWindow()
+    tops = find_tree_tops(
+        target, window=window, min_height_m=args["MIN_HEIGHT"],
+        progress=scaled(feedback.progress, 0.3, 1.0), cancelled=feedback.cancelled,
+    )
+    feedback.info(f"{len(tops.height)} tree tops found")
+    table = VectorTable(
+        "tree_tops", POINT, shapely.points(tops.xyz),
+        {"tree_id": tops.tree_id, "height": tops.height}, crs,
+    )
+    return Result(vectors={"OUTPUT": table}, values={"TREE_COUNT": len(tops.height)})
+
+
+TREE_TOPS = Algorithm(
+    id="treetops",
+    name="Tree tops",
+    group="Individual trees",
+    group_id="trees",
+    summary=(
+        "Finds tree tops as local maxima of canopy height (as lidR's lmf): a point, or CHM cell, "
+        "is a top when nothing within the search window around it is higher. Input is a LiDAR "
+        "tile (heights are normalised first) or a canopy height model GeoTIFF from "
+        "'Canopy height model'. Output: one PointZ per tree with tree_id and height (m above ground)."
+    ),
+    params=(
+        Param("INPUT", FILE, "Point cloud (LAS/LAZ) or canopy height model (GeoTIFF)",
+              file_filter="LAS/LAZ or GeoTIFF (*.las *.laz *.tif *.tiff);;All files (*)",
+              help="A LiDAR tile, or a CHM raster of heights above ground in metres."),
+        Param("WINDOW", ENUM, "Search window", options=WINDOWS, default="fixed",
+              help="fixed: one circular window for every tree (WINDOW_DIAMETER). variable: the "
+                   "window grows with height, as crowns of taller trees are wider; better in "
+                   "stands with mixed heights."),
+        Param("WINDOW_DIAMETER", NUMBER, "Fixed window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
+              help="Diameter of the circular search window in metres; about the crown radius of "
+                   "the smallest trees you want to find."),
+        Param("MIN_HEIGHT", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
+              help="Local maxima lower than this above the ground are not trees (shrubs, cars, noise)."),
+        crs_override(),
+        Param("OUTPUT", VECTOR_OUT, "Tree tops", geometry=POINT,
+              help="Point layer (PointZ, z = elevation of the top) with tree_id and height."),
+    ),
+    run=run,
+)

@@ -1,0 +1,162 @@
+"""`sylva ALGORITHM --PARAM=value ...`: Sylva's algorithms without QGIS.
+
+Ids, parameter names, defaults and help are those of
+``qgis_process run sylva:ALGORITHM --PARAM=value``: both front ends are built
+from the same :mod:`sylva.algorithms` definitions.  Vector outputs are
+written as GeoPackage files; an output left out goes to a temporary folder,
+as qgis_process's TEMPORARY_OUTPUT does, and its path is printed.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+from typing import List, Optional
+
+from .algorithms import ALGORITHMS, get
+from .algorithms import spec as S
+from .core.errors import InputError, SylvaError
+
+
+class CliFeedback(S.Feedback):
+    """Progress as a percentage on stderr; Ctrl-C cancels."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self._last = -1
+
+    def progress(self, fraction: float, message: str = "") -> None:
+        pct = int(fraction * 100)
+        if not self.quiet and pct != self._last:
+            self._last = pct
+            print(f"\r{pct:3d}% {message[:60]:<60}", end="", file=sys.stderr, flush=True)
+            if pct >= 100:
+                print(file=sys.stderr)
+
+    def info(self, message: str) -> None:
+        if not self.quiet:
+            print(f"\n{message}" if 0 <= self._last < 100 else message, file=sys.stderr)
+
+    warn = info
+
+
+def _parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(
+        prog="sylva",
+        description="Individual trees and 3D tree models from LiDAR. The same algorithms, ids and "
+                    "parameters as `qgis_process run sylva:ALGORITHM`.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="algorithms:\n" + "\n".join(f"  {a.id:<22}{a.name}" for a in ALGORITHMS.values())
+               + "\n\n`sylva ALGORITHM --help` lists an algorithm's parameters.",
+    )
+    top.add_argument("--quiet", action="store_true", help="no progress or messages on stderr")
+    subs = top.add_subparsers(dest="algorithm", metavar="ALGORITHM")
+    for alg in ALGORITHMS.values():
+        sub = subs.add_parser(alg.id, help=alg.name, description=alg.summary,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+        for p in alg.params:
+            sub.add_argument(f"--{p.name}", dest=p.name, metavar=_metavar(p), help=_help(p))
+    return top
+
+
+def _metavar(p: S.Param) -> str:
+    return {S.NUMBER: "NUMBER", S.INTEGER: "INT", S.BOOLEAN: "true|false", S.ENUM: "|".join(p.options),
+            S.FILE: "FILE", S.CRS: "CRS"}.get(p.kind, "PATH" if p.is_output else "VALUE")
+
+
+def _help(p: S.Param) -> str:
+    text = f"{p.description}. {p.help}".replace("%", "%%")
+    if p.is_output:
+        return text + " (written to a temporary folder when left out)"
+    if p.default is not None:
+        return text + f" (default: {p.default})"
+    return text + (" (optional)" if p.optional else " (required)")
+
+
+def convert(alg: S.Algorithm, raw: dict) -> dict:
+    """Turn command-line strings into the typed values ``run`` expects (defaults filled in)."""
+    args = {}
+    for p in alg.params:
+        value = raw.get(p.name)
+        if value is None:
+            if p.is_output:
+                value = str(Path(tempfile.mkdtemp(prefix="sylva-")) / f"{p.name.lower()}{p.default_extension()}")
+            elif p.default is None and not p.optional:
+                raise InputError(f"{alg.id}: parameter --{p.name} ({p.description}) is required")
+            else:
+                value = p.default
+        else:
+            value = _typed(alg, p, value)
+        args[p.name] = value
+    return args
+
+
+def _typed(alg: S.Algorithm, p: S.Param, value: str):
+    try:
+        if p.kind == S.NUMBER:
+            v = float(value)
+        elif p.kind == S.INTEGER:
+            v = int(value)
+        elif p.kind == S.BOOLEAN:
+            low = value.strip().lower()
+            if low not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError
+            return low in ("true", "1", "yes")
+        elif p.kind == S.ENUM:
+            if value in p.options:
+                return value
+            return p.options[int(value)]  # qgis_process passes the option's index
+        else:
+            return value
+    except (ValueError, IndexError):
+        raise InputError(f"{alg.id}: --{p.name}={value!r} is not a valid {_metavar(p)}") from None
+    if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
+        raise InputError(f"{alg.id}: --{p.name}={value} is outside [{p.minimum}, {p.maximum}]")
+    return v
+
+
+def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
+    """Write vector tables to GeoPackages; return every output's path."""
+    from .core.io.gpkg import write_gpkg
+
+    paths = dict(result.files)
+    for name, table in result.vectors.items():
+        path = Path(args[name])
+        if path.suffix.lower() != ".gpkg":
+            raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
+        write_gpkg(path, [table])
+        paths[name] = str(path)
+    return paths
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0].startswith("sylva:"):
+        argv[0] = argv[0].split(":", 1)[1]
+    parser = _parser()
+    ns = parser.parse_args(argv)
+    if not ns.algorithm:
+        parser.print_help()
+        return 2
+    alg = get(ns.algorithm)
+    feedback = CliFeedback(ns.quiet)
+    try:
+        args = convert(alg, vars(ns))
+        result = alg.run(args, feedback)
+        paths = write_outputs(alg, args, result)
+    except KeyboardInterrupt:
+        print("\nsylva: cancelled", file=sys.stderr)
+        return 130
+    except SylvaError as exc:
+        print(f"\nsylva {alg.id}: error: {exc}", file=sys.stderr)
+        return 1
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    for name, value in result.values.items():
+        print(f"{name}: {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

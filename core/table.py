@@ -1,0 +1,62 @@
+"""VectorTable: a layer as plain arrays (geometries + attribute columns + CRS).
+
+Core functions return VectorTables; the front ends write them: the CLI to a
+GeoPackage (:mod:`sylva.core.io.gpkg`), the Processing layer to a QGIS
+feature sink (so any format QGIS supports, and temporary layers inside a
+Graphical Modeler graph).  Column dtypes decide field types: integers ->
+integer, floats -> real, anything else -> text.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+
+GEOMETRY_TYPES = ("point", "line", "polygon", "none")
+
+
+@dataclass
+class VectorTable:
+    name: str
+    geometry_type: str                   # "point" | "line" | "polygon" | "none"
+    geometries: Optional[np.ndarray]     # object array of shapely geometries, or None
+    columns: dict = field(default_factory=dict)  # field name -> (n,) array, in field order
+    crs: Any = None                      # pyproj.CRS or None
+    has_z: bool = True
+
+    def __post_init__(self):
+        if self.geometry_type not in GEOMETRY_TYPES:
+            raise ValueError(f"unknown geometry type {self.geometry_type!r}")
+        n = len(self)
+        for name, values in self.columns.items():
+            if len(values) != n:
+                raise ValueError(f"column {name!r} has {len(values)} values for {n} features")
+
+    def __len__(self) -> int:
+        if self.geometries is not None:
+            return len(self.geometries)
+        return len(next(iter(self.columns.values()))) if self.columns else 0
+
+    def field_types(self) -> dict:
+        """Field name -> "integer" | "real" | "text"."""
+        return {name: field_type(values) for name, values in self.columns.items()}
+
+
+def field_type(values: np.ndarray) -> str:
+    kind = np.asarray(values).dtype.kind
+    if kind in "iub":
+        return "integer"
+    if kind == "f":
+        return "real"
+    return "text"
+
+
+def python_values(values: np.ndarray, kind: str) -> list:
+    """A column as plain Python values for a database or QGIS (NaN -> None)."""
+    arr = np.asarray(values)
+    if kind == "integer":
+        return [int(v) for v in arr]
+    if kind == "real":
+        return [None if not np.isfinite(v) else float(v) for v in arr.astype(float)]
+    return [None if v is None else str(v) for v in arr]

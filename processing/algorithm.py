@@ -1,0 +1,214 @@
+"""One QgsProcessingAlgorithm class that runs any sylva.algorithms definition.
+
+Each :class:`~sylva.algorithms.spec.Param` becomes the matching Processing
+parameter; ``processAlgorithm`` reads the values, runs the shared ``run``
+function with QGIS's feedback wired to progress and cancel, turns
+SylvaErrors into QgsProcessingException (a message, not a traceback) and
+writes vector results through feature sinks, so outputs work as files,
+temporary layers and Graphical Modeler links alike.
+"""
+from __future__ import annotations
+
+from qgis.core import (
+    QgsCoordinateReferenceSystem,
+    QgsFeature,
+    QgsFeatureSink,
+    QgsField,
+    QgsFields,
+    QgsGeometry,
+    QgsProcessing,
+    QgsProcessingAlgorithm,
+    QgsProcessingException,
+    QgsProcessingParameterBoolean,
+    QgsProcessingParameterCrs,
+    QgsProcessingParameterDefinition,
+    QgsProcessingParameterEnum,
+    QgsProcessingParameterFeatureSink,
+    QgsProcessingParameterFile,
+    QgsProcessingParameterFileDestination,
+    QgsProcessingParameterFolderDestination,
+    QgsProcessingParameterNumber,
+    QgsProcessingParameterRasterDestination,
+    QgsProcessingParameterString,
+    QgsWkbTypes,
+)
+from qgis.PyQt.QtCore import QVariant
+
+from ..algorithms import spec as S
+from ..core.errors import SylvaError
+from ..core.table import python_values
+from ..plugin import deps
+
+_SINK_TYPES = {S.POINT: QgsProcessing.TypeVectorPoint, S.LINE: QgsProcessing.TypeVectorLine,
+               S.POLYGON: QgsProcessing.TypeVectorPolygon, S.NO_GEOMETRY: QgsProcessing.TypeVector}
+_WKB = {("point", True): QgsWkbTypes.PointZ, ("point", False): QgsWkbTypes.Point,
+        ("line", True): QgsWkbTypes.MultiLineStringZ, ("line", False): QgsWkbTypes.MultiLineString,
+        ("polygon", True): QgsWkbTypes.MultiPolygonZ, ("polygon", False): QgsWkbTypes.MultiPolygon,
+        ("none", True): QgsWkbTypes.NoGeometry, ("none", False): QgsWkbTypes.NoGeometry}
+_QVARIANT = {"integer": QVariant.LongLong, "real": QVariant.Double, "text": QVariant.String}
+
+
+class QgisFeedback(S.Feedback):
+    def __init__(self, feedback):
+        self.feedback = feedback
+
+    def progress(self, fraction, message=""):
+        if message:
+            self.feedback.setProgressText(message)
+        self.feedback.setProgress(100.0 * fraction)
+
+    def cancelled(self):
+        return self.feedback.isCanceled()
+
+    def info(self, message):
+        self.feedback.pushInfo(message)
+
+    def warn(self, message):
+        self.feedback.reportError(message, fatalError=False)
+
+
+def qgs_parameter(p: S.Param):
+    """The QgsProcessingParameterDefinition for a Sylva Param."""
+    k = p.kind
+    if k == S.FILE:
+        q = QgsProcessingParameterFile(p.name, p.description, QgsProcessingParameterFile.File,
+                                       fileFilter=p.file_filter, optional=p.optional)
+    elif k in (S.NUMBER, S.INTEGER):
+        q = QgsProcessingParameterNumber(
+            p.name, p.description,
+            QgsProcessingParameterNumber.Double if k == S.NUMBER else QgsProcessingParameterNumber.Integer,
+            p.default, p.optional,
+            p.minimum if p.minimum is not None else -1e300, p.maximum if p.maximum is not None else 1e300)
+    elif k == S.BOOLEAN:
+        q = QgsProcessingParameterBoolean(p.name, p.description, bool(p.default), p.optional)
+    elif k == S.ENUM:
+        q = QgsProcessingParameterEnum(p.name, p.description, list(p.options), False,
+                                       p.options.index(p.default) if p.default else None, p.optional)
+    elif k == S.CRS:
+        q = QgsProcessingParameterCrs(p.name, p.description, p.default, True)
+    elif k == S.STRING:
+        q = QgsProcessingParameterString(p.name, p.description, p.default, False, p.optional)
+    elif k == S.RASTER_OUT:
+        q = QgsProcessingParameterRasterDestination(p.name, p.description, None, p.optional)
+    elif k == S.VECTOR_OUT:
+        q = QgsProcessingParameterFeatureSink(p.name, p.description, _SINK_TYPES[p.geometry], None, p.optional)
+    elif k == S.FILE_OUT:
+        q = QgsProcessingParameterFileDestination(p.name, p.description, p.file_filter, None, p.optional)
+    elif k == S.FOLDER_OUT:
+        q = QgsProcessingParameterFolderDestination(p.name, p.description, None, p.optional)
+    else:  # pragma: no cover - a new kind must be mapped here
+        raise ValueError(f"no Processing parameter for kind {k!r}")
+    q.setHelp(p.help)
+    if p.advanced:
+        q.setFlags(q.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+    return q
+
+
+def to_qgs_crs(crs) -> QgsCoordinateReferenceSystem:
+    if crs is None:
+        return QgsCoordinateReferenceSystem()
+    epsg = crs.to_epsg()
+    if epsg:
+        return QgsCoordinateReferenceSystem(f"EPSG:{epsg}")
+    return QgsCoordinateReferenceSystem.fromWkt(crs.to_wkt())
+
+
+class SylvaAlgorithm(QgsProcessingAlgorithm):
+    def __init__(self, spec: S.Algorithm):
+        super().__init__()
+        self.spec = spec
+
+    def createInstance(self):  # noqa: N802
+        return SylvaAlgorithm(self.spec)
+
+    def name(self):
+        return self.spec.id
+
+    def displayName(self):  # noqa: N802
+        return self.spec.name
+
+    def group(self):
+        return self.spec.group
+
+    def groupId(self):  # noqa: N802
+        return self.spec.group_id
+
+    def shortHelpString(self):  # noqa: N802
+        return self.spec.help_text().replace("\n", "<br>")
+
+    def initAlgorithm(self, config=None):  # noqa: N802
+        for p in self.spec.params:
+            self.addParameter(qgs_parameter(p))
+
+    def _value(self, p: S.Param, parameters, context):
+        k = p.kind
+        if k == S.FILE:
+            return self.parameterAsFile(parameters, p.name, context)
+        if k == S.NUMBER:
+            return self.parameterAsDouble(parameters, p.name, context)
+        if k == S.INTEGER:
+            return self.parameterAsInt(parameters, p.name, context)
+        if k == S.BOOLEAN:
+            return self.parameterAsBoolean(parameters, p.name, context)
+        if k == S.ENUM:
+            return p.options[self.parameterAsEnum(parameters, p.name, context)]
+        if k == S.CRS:
+            crs = self.parameterAsCrs(parameters, p.name, context)
+            return (crs.authid() or crs.toWkt()) if crs.isValid() else None
+        if k == S.STRING:
+            return self.parameterAsString(parameters, p.name, context)
+        if k == S.RASTER_OUT:
+            return self.parameterAsOutputLayer(parameters, p.name, context)
+        if k in (S.FILE_OUT, S.FOLDER_OUT):
+            return self.parameterAsFileOutput(parameters, p.name, context)
+        return None  # VECTOR_OUT: written through a sink after run()
+
+    def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        lacking = deps.missing()
+        if lacking:
+            raise QgsProcessingException(deps.install_hint(lacking))
+        args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
+        try:
+            result = self.spec.run(args, QgisFeedback(feedback))
+        except SylvaError as exc:
+            raise QgsProcessingException(str(exc)) from None
+        outputs = dict(result.files)
+        for name, table in result.vectors.items():
+            outputs[name] = self._write_sink(parameters, name, table, context, feedback)
+        outputs.update(result.values)
+        return outputs
+
+    def _write_sink(self, parameters, name, table, context, feedback):
+        fields = QgsFields()
+        types = table.field_types()
+        for column, kind in types.items():
+            fields.append(QgsField(column, _QVARIANT[kind]))
+        sink, dest_id = self.parameterAsSink(
+            parameters, name, context, fields, _WKB[(table.geometry_type, table.has_z)], to_qgs_crs(table.crs))
+        if sink is None:
+            return None
+        import shapely
+
+        wkb = None
+        if table.geometries is not None:
+            wkb = shapely.to_wkb(table.geometries, output_dimension=3 if table.has_z else 2, flavor="iso")
+        columns = [python_values(table.columns[c], types[c]) for c in types]
+        n = len(table)
+        for i in range(n):
+            if i % 10000 == 0 and feedback.isCanceled():
+                break
+            feature = QgsFeature(fields)
+            if wkb is not None and wkb[i] is not None:
+                geometry = QgsGeometry()
+                geometry.fromWkb(wkb[i])
+                feature.setGeometry(_as_multi(geometry, table.geometry_type))
+            feature.setAttributes([col[i] for col in columns])
+            sink.addFeature(feature, QgsFeatureSink.FastInsert)
+        return dest_id
+
+
+def _as_multi(geometry, geometry_type):
+    if geometry_type in ("line", "polygon") and not geometry.isMultipart():
+        geometry.convertToMultiType()
+    return geometry
+

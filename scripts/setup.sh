@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Install everything Sylva needs on Debian 12, idempotently:
+#   - QGIS 3.22 and its Python bindings from Debian's packages (apt),
+#   - a virtual environment .venv on Debian's python3 that also sees the QGIS bindings,
+#     with Sylva and its Python dependencies from PyPI (pip install -e .[test]),
+#   - a QGIS profile in .qgis-profile with the plugin enabled, for qgis_process.
+# A second run only checks and returns in a few seconds.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+sudo_cmd=""
+if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
+
+debs="qgis python3-qgis qgis-providers python3-venv"
+if ! dpkg-query -W -f='${Status}\n' $debs 2>/dev/null | grep -c "install ok installed" | grep -qx 4; then
+    echo "setup: installing QGIS from Debian's packages (about a minute)..."
+    $sudo_cmd apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends $debs >/dev/null
+fi
+
+stamp=".venv/.sylva-installed"
+want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "setup: creating .venv with Sylva's Python dependencies..."
+    /usr/bin/python3 -m venv --system-site-packages .venv
+    .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+    # Debian's pyproj looks for its data under sys.prefix/share/proj: point it at Debian's.
+    mkdir -p .venv/share && ln -sfn /usr/share/proj .venv/share/proj
+    echo "$want" > "$stamp"
+fi
+
+# qgis_process finds plugins in QGIS_PLUGINPATH by folder name: link this checkout as "sylva".
+mkdir -p .qgis-plugins
+ln -sfn "$root" .qgis-plugins/sylva
+# shellcheck source=scripts/env.sh
+. scripts/env.sh
+if ! grep -qs "^sylva=true" "$QGIS_CUSTOM_CONFIG_PATH/profiles/default/QGIS/QGIS3.ini"; then
+    qgis_process.bin plugins enable sylva >/dev/null 2>&1 || true
+    grep -qs "^sylva=true" "$QGIS_CUSTOM_CONFIG_PATH/profiles/default/QGIS/QGIS3.ini" \
+        || { echo "setup: could not enable the sylva plugin in $QGIS_CUSTOM_CONFIG_PATH" >&2; exit 1; }
+fi

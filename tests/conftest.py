@@ -1,0 +1,61 @@
+"""Shared fixtures: the bundled sample, the shared real data, QGIS with Sylva's provider."""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "resources" / "sample" / "sample.laz"
+SAMPLE_TRUTH = ROOT / "resources" / "sample" / "sample_trees.csv"
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def sample_laz() -> Path:
+    assert SAMPLE.exists(), "the bundled sample tile is missing: python scripts/make_sample.py writes it"
+    return SAMPLE
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+    return SHARED_DATA
+
+
+def qgis_process_binary() -> str:
+    """The qgis_process that works headless (the Debian wrapper script does not, see README)."""
+    for name in ("qgis_process.bin", "qgis_process"):
+        found = shutil.which(name)
+        if found:
+            return found
+    pytest.skip("qgis_process is not installed")
+
+
+@pytest.fixture()
+def sylva_provider(qgis_processing):
+    """QGIS Processing initialised in this process, with Sylva's provider registered once."""
+    from qgis.core import QgsApplication
+
+    registry = QgsApplication.processingRegistry()
+    provider = registry.providerById("sylva")
+    if provider is None:
+        from sylva.processing.provider import SylvaProvider
+
+        provider = SylvaProvider()
+        registry.addProvider(provider)
+    return provider
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _headless():
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+
+# Helper modules that sit beside the tests (e.g. badfiles.py) import as top-level modules.
+import sys  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
