@@ -1,0 +1,229 @@
+"""Leaf textures drawn by Sylva itself: RGBA arrays with an alpha mask, no copied images.
+
+Hu et al. 2017 §5.6 texture leaf cards with scanned apple, cherry, maple and
+poplar leaves; Guo et al. 2018 §5.2 use "quads with alpha textures".  Sylva
+draws comparable shapes procedurally with numpy (supersampled for smooth
+edges):
+
+* ``"ovate"``       apple / cherry: widest below the middle, finely serrate;
+* ``"lobed"``       oak: obovate outline with rounded lobes;
+* ``"palmate"``     maple: five pointed lobes around the petiole;
+* ``"lanceolate"``  willow: long and narrow;
+* ``"deltoid"``     poplar: broad triangular base, pointed tip;
+* ``"needle_spray"`` conifer: a twig with needles on both sides.
+
+Layout of every texture: the petiole (or twig base) at the bottom centre of
+the image, the leaf tip at the top; texture coordinates in
+:mod:`sylva.core.leaves` follow the OBJ/OpenGL convention (v = 0 at the
+bottom row of the image).  Pixels outside the leaf have alpha 0 (and a leaf
+colour, so mipmapped edges do not darken).  :func:`write_png` writes an image
+through Pillow when it is installed, else through a minimal zlib PNG writer.
+"""
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+import zlib
+from pathlib import Path
+from typing import Dict, Tuple
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["LEAF_SHAPES", "SPECIES_SHAPES", "leaf_texture", "leaf_aspect", "write_png", "read_png_size"]
+
+LEAF_SHAPES = ("ovate", "lobed", "palmate", "lanceolate", "deltoid", "needle_spray")
+
+#: Hu et al.'s leaf species (and a few more) mapped to the drawn shapes.
+SPECIES_SHAPES: Dict[str, str] = {
+    "apple": "ovate", "cherry": "ovate", "beech": "ovate", "birch": "deltoid",
+    "poplar": "deltoid", "maple": "palmate", "oak": "lobed", "willow": "lanceolate",
+    "pine": "needle_spray", "spruce": "needle_spray", "fir": "needle_spray",
+}
+
+# width / length of the drawn leaf (used by leaves.py to size cards)
+_ASPECT = {"ovate": 0.62, "lobed": 0.62, "palmate": 1.0, "lanceolate": 0.3,
+           "deltoid": 0.85, "needle_spray": 0.55}
+
+_PETIOLE_V = 0.12  # the blade starts here (v from 0 at the bottom to 1 at the top)
+
+
+def _shape_name(shape: str) -> str:
+    name = SPECIES_SHAPES.get(str(shape).lower(), str(shape).lower())
+    if name not in LEAF_SHAPES:
+        raise InputError(f"unknown leaf shape {shape!r}: use one of {', '.join(LEAF_SHAPES)} "
+                         f"or a species ({', '.join(sorted(SPECIES_SHAPES))})")
+    return name
+
+
+def leaf_aspect(shape: str) -> float:
+    """Width / length of the drawn leaf (cards of this aspect show it undistorted)."""
+    return _ASPECT[_shape_name(shape)]
+
+
+def _blade_halfwidth(name: str, t: np.ndarray) -> np.ndarray:
+    """Half width (in units of the image half width) along the blade, t in [0, 1]."""
+    t = np.clip(t, 0.0, 1.0)
+    if name == "ovate":
+        hw = 0.95 * np.sin(np.pi * t ** 0.85) ** 0.8 * (1.0 - 0.25 * t ** 3)
+        return hw * (1.0 + 0.035 * np.abs(np.sin(44 * np.pi * t)))          # serrate margin
+    if name == "lanceolate":
+        return 0.95 * np.sin(np.pi * t ** 0.9) ** 1.1
+    if name == "deltoid":
+        hw = 0.97 * np.sin(np.pi * t ** 0.55) ** 0.8
+        return hw * (1.0 + 0.03 * np.abs(np.sin(36 * np.pi * t)))
+    if name == "lobed":
+        base = 0.98 * np.sin(np.pi * t ** 1.25) ** 0.7
+        lobes = 0.62 + 0.38 * (0.5 - 0.5 * np.cos(2.0 * np.pi * 4.0 * t ** 1.1)) ** 0.5
+        return base * lobes
+    raise AssertionError(name)
+
+
+def _leaf_mask(name: str, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Boolean coverage at normalised coordinates u in [-1, 1] (across), v in [0, 1] (up)."""
+    petiole = (np.abs(u) < 0.035) & (v >= 0.0) & (v <= _PETIOLE_V + 0.05)
+    if name == "palmate":
+        cy, radius = 0.42, 0.98
+        du, dv = u, (v - cy) * 2.0  # u spans 2 units and v 1 unit on a square card
+        rr = np.hypot(du, dv)
+        theta = np.arctan2(du, dv)  # 0 = up
+        period = np.deg2rad(54.0)
+        lobe = (0.5 + 0.5 * np.cos(2.0 * np.pi * theta / period)) ** 2.5
+        env = np.clip(1.0 - 0.33 * np.abs(theta) / np.deg2rad(108.0), 0.0, 1.0)
+        rmax = radius * (0.45 + 0.55 * lobe * env) * np.where(np.abs(theta) > np.deg2rad(135), 0.45, 1.0)
+        rmax = rmax * (1.0 + 0.04 * np.abs(np.sin(5 * 2.0 * np.pi * theta / period)))
+        blade = rr <= rmax * 1.0
+        petiole = (np.abs(u) < 0.035) & (v >= 0.0) & (v <= cy)
+        return blade | petiole
+    if name == "needle_spray":
+        vv = 2.0 * v                                    # isotropic: both in image half widths
+        out = (np.abs(u) < 0.035) & (vv >= 0.0) & (vv <= 1.94)      # the twig
+        spacing, width = 0.07, 0.02
+        tilt = np.deg2rad(50.0)  # needle angle from the twig axis, pointing to the tip
+        for sgn, shift in ((1.0, 0.0), (-1.0, 0.5)):
+            du, dv = sgn * np.sin(tilt), np.cos(tilt)   # needle direction
+            v0 = 0.08 + shift * spacing
+            cross0 = u * dv - vv * du                   # cross((u, V) - (0, V_k), d) = cross0 + V_k du
+            kmax = int((1.86 - v0) / spacing)
+            k = np.clip(np.rint(-(cross0 + v0 * du) / (spacing * du)), 0, kmax)
+            vk = v0 + k * spacing
+            perp = np.abs(cross0 + vk * du)
+            along = u * du + (vv - vk) * dv
+            frac = np.clip((vk - v0) / (1.86 - v0), 0.0, 1.0)
+            length = 1.25 * (0.35 + 0.65 * np.sin(np.pi * (0.15 + 0.75 * frac)))
+            taper = width * np.clip(1.0 - along / length, 0.25, 1.0)
+            out |= (sgn * u > 0) & (perp < taper) & (along > 0) & (along < length) & (vv < 2.0)
+        return out
+    t = (v - _PETIOLE_V) / (1.0 - _PETIOLE_V - 0.02)
+    blade = (t >= 0) & (t <= 1) & (np.abs(u) <= _blade_halfwidth(name, t))
+    return blade | petiole
+
+
+_COLOURS = {
+    "ovate": ((64, 128, 38), (38, 90, 24)),
+    "lobed": ((82, 120, 40), (52, 86, 26)),
+    "palmate": ((96, 140, 42), (60, 100, 28)),
+    "lanceolate": ((104, 140, 66), (66, 102, 44)),
+    "deltoid": ((74, 136, 52), (44, 96, 34)),
+    "needle_spray": ((46, 92, 52), (30, 66, 38)),
+}
+
+
+def leaf_texture(shape: str = "ovate", size: int = 256, supersample: int = 3) -> np.ndarray:
+    """An RGBA leaf image (size, size, 4) uint8 drawn procedurally (no image files).
+
+    ``shape`` is one of :data:`LEAF_SHAPES` or a species of
+    :data:`SPECIES_SHAPES` (Hu et al. 2017 §5.6 use apple, cherry, maple and
+    poplar).  The petiole is at the bottom centre, the tip at the top; alpha
+    is 255 inside the leaf, 0 outside, antialiased over ``supersample``²
+    subpixels.  The blade is shaded from the midrib outwards with a darker
+    midrib and lateral veins.  Deterministic.
+    """
+    name = _shape_name(shape)
+    size = int(size)
+    if size < 8:
+        raise InputError(f"leaf texture size must be at least 8 pixels, got {size}")
+    ss = max(1, int(supersample))
+    n = size * ss
+    c = (np.arange(n) + 0.5) / n
+    u = (c * 2.0 - 1.0)[None, :]            # across, -1 .. 1
+    v = (1.0 - c)[:, None]                  # up: row 0 is the top of the image
+    uu = np.broadcast_to(u, (n, n))
+    vv = np.broadcast_to(v, (n, n))
+    mask = _leaf_mask(name, uu, vv)
+    cover = mask.reshape(size, ss, size, ss).mean(axis=(1, 3))
+    # colours at pixel centres
+    pc = (np.arange(size) + 0.5) / size
+    pu = (pc * 2.0 - 1.0)[None, :]
+    pv = (1.0 - pc)[:, None]
+    light, dark = (np.array(x, dtype=np.float64) for x in _COLOURS[name])
+    shade = np.clip(0.25 + 0.75 * np.abs(pu) ** 0.7 + 0.15 * (1 - pv), 0.0, 1.0)
+    rgb = light[None, None, :] * (1 - 0.35 * shade[..., None]) + dark[None, None, :] * 0.35 * shade[..., None]
+    if name == "needle_spray":
+        twig = np.abs(pu) < 0.045
+        rgb = np.where(twig[..., None], np.array([96.0, 72.0, 46.0]), rgb)
+    else:
+        midrib = np.abs(pu) < 0.025
+        veins = (np.abs(((pv - 1.1 * np.abs(pu)) * 9.0) % 1.0 - 0.5) < 0.06) & (np.abs(pu) < 0.85)
+        if name == "palmate":
+            th = np.arctan2(pu, (pv - 0.42) * 2.0)
+            midrib = (np.abs(((th / np.deg2rad(54.0)) + 0.5) % 1.0 - 0.5) * np.deg2rad(54.0)
+                      * np.hypot(pu, (pv - 0.42) * 2) < 0.025) & (np.abs(th) < np.deg2rad(115))
+            veins = np.zeros_like(midrib)
+        rgb = np.where(midrib[..., None], rgb * 0.72 + 40.0, rgb)
+        rgb = np.where(veins[..., None], rgb * 0.85 + 12.0, rgb)
+    out = np.empty((size, size, 4), dtype=np.uint8)
+    out[..., :3] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    out[..., 3] = np.clip(np.rint(cover * 255.0), 0, 255).astype(np.uint8)
+    return out
+
+
+# --------------------------------------------------------------------------- PNG
+
+def _png_bytes(rgba: np.ndarray) -> bytes:
+    """A minimal PNG (8-bit RGBA, filter 0 rows, one zlib IDAT chunk)."""
+    h, w = rgba.shape[:2]
+    raw = np.zeros((h, w * 4 + 1), dtype=np.uint8)
+    raw[:, 1:] = rgba.reshape(h, w * 4)
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + tag + data
+                + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
+
+    return (b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw.tobytes(), 9))
+            + chunk(b"IEND", b""))
+
+
+def write_png(path, rgba: np.ndarray) -> Path:
+    """Write an (h, w, 4) uint8 image as PNG: to a temporary name, then ``os.replace``."""
+    rgba = np.asarray(rgba)
+    if rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
+        raise InputError(f"{path}: expected an (h, w, 4) uint8 RGBA image, got {rgba.shape} {rgba.dtype}")
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=str(path.parent))
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            try:
+                from PIL import Image
+                Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(fh, format="PNG", optimize=True)
+            except ImportError:
+                fh.write(_png_bytes(rgba))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def read_png_size(path) -> Tuple[int, int]:
+    """(width, height) from a PNG header (for checks without an image library)."""
+    with open(path, "rb") as fh:
+        head = fh.read(24)
+    if head[:8] != b"\x89PNG\r\n\x1a\n":
+        raise InputError(f"{path}: not a PNG file")
+    return struct.unpack(">II", head[16:24])
