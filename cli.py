@@ -14,7 +14,7 @@ import tempfile
 from pathlib import Path
 from typing import List, Optional
 
-from .algorithms import ALGORITHMS, get
+from .algorithms import all_algorithms, get
 from .algorithms import spec as S
 from .core.errors import InputError, SylvaError
 
@@ -47,12 +47,12 @@ def _parser() -> argparse.ArgumentParser:
         description="Individual trees and 3D tree models from LiDAR. The same algorithms, ids and "
                     "parameters as `qgis_process run sylva:ALGORITHM`.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="algorithms:\n" + "\n".join(f"  {a.id:<22}{a.name}" for a in ALGORITHMS.values())
+        epilog="algorithms:\n" + "\n".join(f"  {a.id:<22}{a.name}" for a in all_algorithms().values())
                + "\n\n`sylva ALGORITHM --help` lists an algorithm's parameters.",
     )
     top.add_argument("--quiet", action="store_true", help="no progress or messages on stderr")
     subs = top.add_subparsers(dest="algorithm", metavar="ALGORITHM")
-    for alg in ALGORITHMS.values():
+    for alg in all_algorithms().values():
         sub = subs.add_parser(alg.id, help=alg.name, description=alg.summary,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
         for p in alg.params:
@@ -68,7 +68,8 @@ def _metavar(p: S.Param) -> str:
 def _help(p: S.Param) -> str:
     text = f"{p.description}. {p.help}".replace("%", "%%")
     if p.is_output:
-        return text + " (written to a temporary folder when left out)"
+        return text + (" (optional: not written when left out)" if p.optional
+                       else " (written to a temporary folder when left out)")
     if p.default is not None:
         return text + f" (default: {p.default})"
     return text + (" (optional)" if p.optional else " (required)")
@@ -80,7 +81,9 @@ def convert(alg: S.Algorithm, raw: dict) -> dict:
     for p in alg.params:
         value = raw.get(p.name)
         if value is None:
-            if p.is_output:
+            if p.is_output and p.optional:
+                value = None  # an optional output left out is not written
+            elif p.is_output:
                 value = str(Path(tempfile.mkdtemp(prefix="sylva-")) / f"{p.name.lower()}{p.default_extension()}")
             elif p.default is None and not p.optional:
                 raise InputError(f"{alg.id}: parameter --{p.name} ({p.description}) is required")
@@ -122,6 +125,8 @@ def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
 
     paths = dict(result.files)
     for name, table in result.vectors.items():
+        if not args.get(name):
+            continue
         path = Path(args[name])
         if path.suffix.lower() != ".gpkg":
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")

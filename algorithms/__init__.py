@@ -1,20 +1,36 @@
-"""The registry of Sylva's algorithms, shared by the Processing provider and the CLI."""
+"""The registry of Sylva's algorithms, shared by the Processing provider and the CLI.
+
+Importing this package is cheap and needs no third-party package (the plugin
+must load, and name what is missing, even when numpy or laspy are not
+installed): :func:`all_algorithms` imports the definitions on first use.
+"""
 from __future__ import annotations
 
+import importlib
 from typing import Dict
 
-from .spec import Algorithm
-from .terrain import CANOPY_HEIGHT_MODEL
-from .tops import TREE_TOPS
+#: Modules that define algorithms, each exporting its Algorithm values in ``ALGORITHMS``.
+MODULES = ("terrain", "tops", "segment")
 
-ALGORITHMS: Dict[str, Algorithm] = {a.id: a for a in (CANOPY_HEIGHT_MODEL, TREE_TOPS)}
+_cache: Dict[str, object] = {}
 
 
-def get(algorithm_id: str) -> Algorithm:
+def all_algorithms() -> Dict[str, "Algorithm"]:  # noqa: F821
+    """id -> Algorithm, in toolbox order."""
+    if not _cache:
+        for name in MODULES:
+            module = importlib.import_module(f"{__name__}.{name}")
+            for alg in module.ALGORITHMS:
+                _cache[alg.id] = alg
+    return _cache
+
+
+def get(algorithm_id: str):
     """The algorithm with this id (``sylva:`` prefix allowed)."""
     key = algorithm_id.split(":", 1)[-1]
-    if key not in ALGORITHMS:
+    algorithms = all_algorithms()
+    if key not in algorithms:
         from ..core.errors import InputError
 
-        raise InputError(f"unknown algorithm {algorithm_id!r}; known: {', '.join(sorted(ALGORITHMS))}")
-    return ALGORITHMS[key]
+        raise InputError(f"unknown algorithm {algorithm_id!r}; known: {', '.join(sorted(algorithms))}")
+    return algorithms[key]

@@ -51,3 +51,45 @@ def require_existing(path: str) -> str:
     if not path or not Path(path).exists():
         raise InputError(f"{path}: file not found")
     return path
+
+
+def method_params(cls, texts: dict, advanced: tuple = ()) -> tuple:
+    """Params for the fields of a method dataclass, named as the fields in upper case.
+
+    ``texts`` maps a field name to (description, help); only those fields are
+    exposed, in that order, with the dataclass's own default (one source of
+    defaults: the paper's, in the dataclass).
+    """
+    import dataclasses
+
+    from .spec import BOOLEAN, INTEGER, NUMBER
+
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+    params = []
+    for field, (description, text) in texts.items():
+        default = defaults[field]
+        kind = BOOLEAN if isinstance(default, bool) else INTEGER if isinstance(default, int) else NUMBER
+        params.append(Param(field.upper(), kind, description, default=default,
+                            minimum=None if kind == BOOLEAN else 0.0, help=text,
+                            advanced=field in advanced))
+    return tuple(params)
+
+
+def build_method(cls, args: dict, **fixed):
+    """An instance of ``cls`` from the upper-case args of its exposed fields (see method_params)."""
+    import dataclasses
+
+    values = {f.name: args[f.name.upper()] for f in dataclasses.fields(cls) if f.name.upper() in args}
+    values.update(fixed)
+    return cls(**values)
+
+
+def drop_noise(cloud, feedback: Feedback):
+    """(cloud without noise points, boolean mask of the kept points); tells the user how many."""
+    from ..core.noise import noise_mask
+
+    noise = noise_mask(cloud)
+    if noise.any():
+        feedback.info(f"{int(noise.sum()):,} noise points left out (classes 7/18, withheld, isolated)")
+    keep = ~noise
+    return cloud.subset(keep), keep

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ..core.progress import scaled
-from .common import crs_override, input_cloud, load_cloud
+from .common import crs_override, drop_noise, input_cloud, load_cloud
 from .spec import BOOLEAN, NUMBER, RASTER_OUT, Algorithm, Feedback, Param, Result
 
 
@@ -10,12 +10,12 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.raster import write_geotiff
     from ..core.terrain import canopy_height_model, normalize
 
-    cloud = load_cloud(args, feedback)
+    cloud, _ = drop_noise(load_cloud(args, feedback), feedback)
     feedback.progress(0.05, "height above ground")
     cloud = normalize(cloud)
     chm = canopy_height_model(
         cloud,
-        resolution_m=args["RESOLUTION"],
+        resolution_m=args["RESOLUTION_M"],
         pit_free=args["PIT_FREE"],
         progress=scaled(feedback.progress, 0.3, 0.95),
         cancelled=feedback.cancelled,
@@ -39,7 +39,7 @@ CANOPY_HEIGHT_MODEL = Algorithm(
     ),
     params=(
         input_cloud(),
-        Param("RESOLUTION", NUMBER, "Cell size (m)", default=0.5, minimum=0.05, maximum=100.0,
+        Param("RESOLUTION_M", NUMBER, "Cell size (m)", default=0.5, minimum=0.05, maximum=100.0,
               help="Size of a CHM cell in metres. About half the typical point spacing or finer "
                    "gives sharp crowns; 0.5 m suits 5–20 points/m².",),
         Param("PIT_FREE", BOOLEAN, "Pit-free CHM", default=True,
@@ -51,3 +51,4 @@ CANOPY_HEIGHT_MODEL = Algorithm(
     ),
     run=run,
 )
+ALGORITHMS = (CANOPY_HEIGHT_MODEL,)

@@ -5,7 +5,7 @@ import shapely
 
 from ..core.progress import scaled
 from ..core.table import VectorTable
-from .common import crs_override, is_raster, load_cloud, require_existing
+from .common import crs_override, drop_noise, is_raster, load_cloud, require_existing
 from .spec import ENUM, FILE, NUMBER, POINT, VECTOR_OUT, Algorithm, Feedback, Param, Result
 
 WINDOWS = ("fixed", "variable")
@@ -22,13 +22,13 @@ def run(args: dict, feedback: Feedback) -> Result:
         crs = target.crs
         feedback.info(f"{source}: canopy height model, {target.data.shape[1]} x {target.data.shape[0]} cells")
     else:
-        cloud = load_cloud(args, feedback)
+        cloud, _ = drop_noise(load_cloud(args, feedback), feedback)
         feedback.progress(0.05, "height above ground")
         target = normalize(cloud)
         crs = cloud.crs
-    window = FixedWindow(diameter_m=args["WINDOW_DIAMETER"]) if args["WINDOW"] == "fixed" else VariableWindow()
+    window = FixedWindow(diameter_m=args["WINDOW_DIAMETER_M"]) if args["WINDOW"] == "fixed" else VariableWindow()
     tops = find_tree_tops(
-        target, window=window, min_height_m=args["MIN_HEIGHT"],
+        target, window=window, min_height_m=args["MIN_HEIGHT_M"],
         progress=scaled(feedback.progress, 0.3, 1.0), cancelled=feedback.cancelled,
     )
     feedback.info(f"{len(tops.height)} tree tops found")
@@ -55,13 +55,13 @@ TREE_TOPS = Algorithm(
               file_filter="LAS/LAZ or GeoTIFF (*.las *.laz *.tif *.tiff);;All files (*)",
               help="A LiDAR tile, or a CHM raster of heights above ground in metres."),
         Param("WINDOW", ENUM, "Search window", options=WINDOWS, default="fixed",
-              help="fixed: one circular window for every tree (WINDOW_DIAMETER). variable: the "
+              help="fixed: one circular window for every tree (WINDOW_DIAMETER_M). variable: the "
                    "window grows with height, as crowns of taller trees are wider; better in "
                    "stands with mixed heights."),
-        Param("WINDOW_DIAMETER", NUMBER, "Fixed window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
+        Param("WINDOW_DIAMETER_M", NUMBER, "Fixed window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
               help="Diameter of the circular search window in metres; about the crown radius of "
                    "the smallest trees you want to find."),
-        Param("MIN_HEIGHT", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
+        Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
               help="Local maxima lower than this above the ground are not trees (shrubs, cars, noise)."),
         crs_override(),
         Param("OUTPUT", VECTOR_OUT, "Tree tops", geometry=POINT,
@@ -69,3 +69,4 @@ TREE_TOPS = Algorithm(
     ),
     run=run,
 )
+ALGORITHMS = (TREE_TOPS,)

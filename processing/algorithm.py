@@ -36,7 +36,6 @@ from qgis.PyQt.QtCore import QVariant
 
 from ..algorithms import spec as S
 from ..core.errors import SylvaError
-from ..core.table import python_values
 from ..plugin import deps
 
 _SINK_TYPES = {S.POINT: QgsProcessing.TypeVectorPoint, S.LINE: QgsProcessing.TypeVectorLine,
@@ -189,6 +188,8 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
             return None
         import shapely
 
+        from ..core.table import python_values
+
         wkb = None
         if table.geometries is not None:
             wkb = shapely.to_wkb(table.geometries, output_dimension=3 if table.has_z else 2, flavor="iso")
@@ -212,3 +213,29 @@ def _as_multi(geometry, geometry_type):
         geometry.convertToMultiType()
     return geometry
 
+
+
+class MissingDependencies(QgsProcessingAlgorithm):
+    """Shown instead of Sylva's algorithms when Python packages are missing: says which and how."""
+
+    def __init__(self, lacking):
+        super().__init__()
+        self.lacking = list(lacking)
+
+    def createInstance(self):  # noqa: N802
+        return MissingDependencies(self.lacking)
+
+    def name(self):
+        return "dependencies"
+
+    def displayName(self):  # noqa: N802
+        return "Install Sylva's Python packages (missing: " + ", ".join(self.lacking) + ")"
+
+    def shortHelpString(self):  # noqa: N802
+        return deps.install_hint(self.lacking)
+
+    def initAlgorithm(self, config=None):  # noqa: N802
+        pass
+
+    def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        raise QgsProcessingException(deps.install_hint(self.lacking))

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from qgis.core import QgsProcessingProvider
+from qgis.core import Qgis, QgsMessageLog, QgsProcessingProvider
 from qgis.PyQt.QtGui import QIcon
+
+from ..plugin import deps
 
 ICON = Path(__file__).resolve().parents[1] / "resources" / "icon.svg"
 
@@ -23,8 +25,16 @@ class SylvaProvider(QgsProcessingProvider):
         return QIcon(str(ICON))
 
     def loadAlgorithms(self):  # noqa: N802
-        from ..algorithms import ALGORITHMS
+        lacking = deps.missing()
+        if lacking:
+            # Load anyway, with one algorithm that tells the user what to install.
+            from .algorithm import MissingDependencies
+
+            QgsMessageLog.logMessage(deps.install_hint(lacking), "Sylva", Qgis.Critical)
+            self.addAlgorithm(MissingDependencies(lacking))
+            return
+        from ..algorithms import all_algorithms
         from .algorithm import SylvaAlgorithm
 
-        for spec in ALGORITHMS.values():
+        for spec in all_algorithms().values():
             self.addAlgorithm(SylvaAlgorithm(spec))

@@ -11,7 +11,14 @@ out="$root/demo-output"
 sample="$root/resources/sample/sample.laz"
 mkdir -p "$out"
 run() { qgis_process.bin run "$@" 2>&1 | grep -v -e "setapi() is deprecated" -e "^$"; }
-run sylva:canopyheightmodel --INPUT="$sample" --RESOLUTION=0.5 --PIT_FREE=true --OUTPUT="$out/chm.tif"
-run sylva:treetops --INPUT="$sample" --WINDOW=0 --WINDOW_DIAMETER=3 --MIN_HEIGHT=2 --OUTPUT="$out/tree_tops.gpkg"
+run sylva:canopyheightmodel --INPUT="$sample" --RESOLUTION_M=0.5 --PIT_FREE=true --OUTPUT="$out/chm.tif"
+run sylva:treetops --INPUT="$sample" --WINDOW=0 --WINDOW_DIAMETER_M=3 --MIN_HEIGHT_M=2 --OUTPUT="$out/tree_tops.gpkg"
+run sylva:segmenttrees --INPUT="$sample" --METHOD=0 --OUTPUT="$out/segmented.laz" \
+    --TREE_TOPS="$out/seg_tree_tops.gpkg" --CROWNS="$out/crowns.gpkg" --CROWN_POINTS="$out/crown_points.gpkg" \
+    --STEM_POINTS="$out/stem_points.gpkg" --TREES="$out/trees.gpkg"
 echo
-echo "Outputs are in $out: chm.tif (canopy height model), tree_tops.gpkg (one point per tree)."
+echo "Outputs are in $out:"
+echo "  chm.tif            canopy height model (m above ground)"
+echo "  tree_tops.gpkg     local-maximum tree tops"
+echo "  segmented.laz      the sample tile with a treeID per point (normalised cut, Hu et al. 2017)"
+echo "  crowns.gpkg, crown_points.gpkg, stem_points.gpkg, seg_tree_tops.gpkg, trees.gpkg"

@@ -7,4 +7,4 @@ bash "$root/scripts/setup.sh"
 cd "$root"
 # shellcheck source=scripts/env.sh
 . scripts/env.sh
-exec .venv/bin/python -m pytest "$@"
+exec .venv/bin/pytest "$@"

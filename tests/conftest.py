@@ -47,7 +47,11 @@ def sylva_provider(qgis_processing):
 
         provider = SylvaProvider()
         registry.addProvider(provider)
+        _KEEP.append(provider)  # the registry does not own Python providers: keep it alive
     return provider
+
+
+_KEEP = []
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -55,7 +59,9 @@ def _headless():
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 
-# Helper modules that sit beside the tests (e.g. badfiles.py) import as top-level modules.
+# Helper modules that sit beside the tests (e.g. badfiles.py) import as top-level modules, and the
+# checkout itself must not be on sys.path: its `processing/` folder would hide QGIS's `processing`.
 import sys  # noqa: E402
 
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT]
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sylva.algorithms import ALGORITHMS
+from sylva.algorithms import all_algorithms
 from sylva.core.io.gpkg import read_gpkg
 
 from badfiles import make_bad_inputs  # noqa: E402  (tests/ is on sys.path via rootdir conftest)
@@ -19,12 +19,12 @@ def sylva(*args, cwd=None):
 def test_help_lists_every_algorithm():
     out = sylva("--help")
     assert out.returncode == 0
-    for alg_id in ALGORITHMS:
+    for alg_id in all_algorithms():
         assert alg_id in out.stdout
 
 
 def test_algorithm_help_lists_every_parameter():
-    for alg in ALGORITHMS.values():
+    for alg in all_algorithms().values():
         out = sylva(alg.id, "--help")
         assert out.returncode == 0, out.stderr
         for p in alg.params:
@@ -48,7 +48,7 @@ def test_treetops_on_the_sample(tmp_path, sample_laz):
 
 def test_chm_then_tops_from_the_chm(tmp_path, sample_laz):
     chm = tmp_path / "chm.tif"
-    out = sylva("canopyheightmodel", f"--INPUT={sample_laz}", "--RESOLUTION=1.0", f"--OUTPUT={chm}")
+    out = sylva("canopyheightmodel", f"--INPUT={sample_laz}", "--RESOLUTION_M=1.0", f"--OUTPUT={chm}")
     assert out.returncode == 0, out.stderr
     tops = tmp_path / "tops.gpkg"
     out = sylva("treetops", f"--INPUT={chm}", f"--OUTPUT={tops}")
@@ -70,7 +70,7 @@ def test_bad_input_gives_one_clear_message(tmp_path, sample_laz, case):
 
 
 def test_bad_parameter_value(tmp_path, sample_laz):
-    out = sylva("treetops", f"--INPUT={sample_laz}", "--WINDOW_DIAMETER=abc")
-    assert out.returncode == 1 and "WINDOW_DIAMETER" in out.stderr and "Traceback" not in out.stderr
-    out = sylva("treetops", f"--INPUT={sample_laz}", "--MIN_HEIGHT=-5")
+    out = sylva("treetops", f"--INPUT={sample_laz}", "--WINDOW_DIAMETER_M=abc")
+    assert out.returncode == 1 and "WINDOW_DIAMETER_M" in out.stderr and "Traceback" not in out.stderr
+    out = sylva("treetops", f"--INPUT={sample_laz}", "--MIN_HEIGHT_M=-5")
     assert out.returncode == 1 and "outside" in out.stderr

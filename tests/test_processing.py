@@ -20,14 +20,14 @@ def test_provider_lists_the_algorithms(sylva_provider):
     ids = {a.id() for a in QgsApplication.processingRegistry().providerById("sylva").algorithms()}
     assert {"sylva:canopyheightmodel", "sylva:treetops"} <= ids
     alg = QgsApplication.processingRegistry().algorithmById("sylva:treetops")
-    assert "WINDOW_DIAMETER" in alg.shortHelpString()
-    assert alg.parameterDefinition("MIN_HEIGHT").defaultValue() == 2.0
+    assert "WINDOW_DIAMETER_M" in alg.shortHelpString()
+    assert alg.parameterDefinition("MIN_HEIGHT_M").defaultValue() == 2.0
 
 
 def test_chm_opens_as_a_raster_layer(sylva_provider, sample_laz, tmp_path):
     from qgis.core import QgsRasterLayer
 
-    result = run("sylva:canopyheightmodel", {"INPUT": str(sample_laz), "RESOLUTION": 1.0,
+    result = run("sylva:canopyheightmodel", {"INPUT": str(sample_laz), "RESOLUTION_M": 1.0,
                                              "PIT_FREE": True, "OUTPUT": str(tmp_path / "chm.tif")})
     layer = QgsRasterLayer(result["OUTPUT"], "chm")
     assert layer.isValid()
@@ -41,8 +41,8 @@ def test_treetops_layer_opens_with_fields(sylva_provider, sample_laz, tmp_path):
     from qgis.core import QgsVectorLayer, QgsWkbTypes
 
     out = str(tmp_path / "tops.gpkg")
-    result = run("sylva:treetops", {"INPUT": str(sample_laz), "WINDOW": 0, "WINDOW_DIAMETER": 3.0,
-                                    "MIN_HEIGHT": 2.0, "OUTPUT": out})
+    result = run("sylva:treetops", {"INPUT": str(sample_laz), "WINDOW": 0, "WINDOW_DIAMETER_M": 3.0,
+                                    "MIN_HEIGHT_M": 2.0, "OUTPUT": out})
     layer = QgsVectorLayer(result["OUTPUT"], "tops", "ogr")
     assert layer.isValid()
     assert layer.wkbType() == QgsWkbTypes.PointZ
@@ -65,15 +65,15 @@ def test_two_step_model_chm_then_tops(sylva_provider, sample_laz, tmp_path):
     chm = QgsProcessingModelChildAlgorithm("sylva:canopyheightmodel")
     chm.setChildId("chm")
     chm.addParameterSources("INPUT", [Src.fromModelParameter("tile")])
-    chm.addParameterSources("RESOLUTION", [Src.fromStaticValue(1.0)])
+    chm.addParameterSources("RESOLUTION_M", [Src.fromStaticValue(1.0)])
     chm.addParameterSources("PIT_FREE", [Src.fromStaticValue(True)])
     model.addChildAlgorithm(chm)
     tops = QgsProcessingModelChildAlgorithm("sylva:treetops")
     tops.setChildId("tops")
     tops.addParameterSources("INPUT", [Src.fromChildOutput("chm", "OUTPUT")])
     tops.addParameterSources("WINDOW", [Src.fromStaticValue(0)])
-    tops.addParameterSources("WINDOW_DIAMETER", [Src.fromStaticValue(3.0)])
-    tops.addParameterSources("MIN_HEIGHT", [Src.fromStaticValue(2.0)])
+    tops.addParameterSources("WINDOW_DIAMETER_M", [Src.fromStaticValue(3.0)])
+    tops.addParameterSources("MIN_HEIGHT_M", [Src.fromStaticValue(2.0)])
     output = QgsProcessingModelOutput("tree_tops")
     output.setChildId("tops")
     output.setChildOutputName("OUTPUT")
@@ -126,6 +126,35 @@ def test_progress_is_reported(sylva_provider, sample_laz, tmp_path):
     seen = []
     feedback = QgsProcessingFeedback()
     feedback.progressChanged.connect(seen.append)
-    run("sylva:canopyheightmodel", {"INPUT": str(sample_laz), "RESOLUTION": 1.0, "OUTPUT": str(tmp_path / "c.tif")},
+    run("sylva:canopyheightmodel", {"INPUT": str(sample_laz), "RESOLUTION_M": 1.0, "OUTPUT": str(tmp_path / "c.tif")},
         feedback)
     assert len(seen) >= 3 and max(seen) == pytest.approx(100.0)
+
+
+def test_plugin_registers_and_unregisters_its_provider(qgis_processing):
+    from qgis.core import QgsApplication
+
+    import sylva
+
+    registry = QgsApplication.processingRegistry()
+    existing = registry.providerById("sylva")
+    if existing is not None:
+        registry.removeProvider(existing)
+    plugin = sylva.classFactory(None)  # what qgis_process does
+    plugin.initProcessing()
+    assert registry.algorithmById("sylva:segmenttrees") is not None
+    plugin.unload()
+    assert registry.providerById("sylva") is None
+
+
+def test_missing_package_is_named_instead_of_failing_to_load(qgis_processing, monkeypatch):
+    from sylva.plugin import deps
+    from sylva.processing.provider import SylvaProvider
+
+    monkeypatch.setattr(deps, "REQUIRED", deps.REQUIRED + (("surely_missing_mod", "surely-missing"),))
+    provider = SylvaProvider()
+    provider.refreshAlgorithms()
+    algorithms = provider.algorithms()
+    assert [a.name() for a in algorithms] == ["dependencies"]
+    assert "surely-missing" in algorithms[0].shortHelpString()
+    assert "pip install" in algorithms[0].shortHelpString()

@@ -1,0 +1,72 @@
+"""sylva:segmenttrees and sylva:normalizeheight end to end, in real QGIS and from the CLI."""
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pytest
+
+from sylva.core.io.gpkg import read_gpkg
+
+TREE_FIELDS = ["tree_id", "x", "y", "ground_z", "height", "crown_area", "crown_diameter",
+               "crown_base_height", "n_points"]
+
+
+@pytest.mark.qgis
+@pytest.mark.parametrize("method", [0, 1])
+def test_segmenttrees_outputs_open_in_qgis(sylva_provider, sample_laz, tmp_path, method):
+    import processing
+    from qgis.core import QgsVectorLayer, QgsWkbTypes
+
+    out = {name: str(tmp_path / f"{name.lower()}.gpkg")
+           for name in ("TREE_TOPS", "CROWNS", "CROWN_POINTS", "STEM_POINTS", "TREES")}
+    result = processing.run("sylva:segmenttrees", {"INPUT": str(sample_laz), "METHOD": method,
+                                                   "OUTPUT": str(tmp_path / "seg.laz"), **out})
+    layers = {name: QgsVectorLayer(result[name], name, "ogr") for name in out}
+    assert all(layer.isValid() for layer in layers.values())
+    assert layers["TREE_TOPS"].wkbType() == QgsWkbTypes.PointZ
+    assert QgsWkbTypes.geometryType(layers["CROWNS"].wkbType()) == QgsWkbTypes.PolygonGeometry
+    assert layers["TREES"].wkbType() == QgsWkbTypes.NoGeometry
+    assert [f.name() for f in layers["TREES"].fields()][1:] == TREE_FIELDS  # after the fid
+    n = layers["TREES"].featureCount()
+    assert n == result["TREE_COUNT"] > 20
+    assert layers["TREE_TOPS"].featureCount() == layers["CROWNS"].featureCount() == n
+    tree_ids = {f["tree_id"] for f in layers["TREES"].getFeatures()}
+    las = laspy.read(result["OUTPUT"])
+    labels = np.asarray(las["treeID"])
+    assert set(np.unique(labels[labels > 0])) == tree_ids
+    assert {f["tree_id"] for f in layers["CROWN_POINTS"].getFeatures()} <= tree_ids
+    counts = np.bincount(labels)
+    for f in layers["TREES"].getFeatures():
+        assert f["n_points"] == counts[f["tree_id"]]
+        assert 0 <= f["crown_base_height"] < f["height"]
+        assert f["crown_diameter"] > 0
+    assert layers["CROWN_POINTS"].featureCount() + layers["STEM_POINTS"].featureCount() == int((labels > 0).sum())
+    src = laspy.read(sample_laz)
+    assert len(las.points) == len(src.points)
+    np.testing.assert_array_equal(las.x, src.x)
+    assert las.header.parse_crs() == src.header.parse_crs()
+
+
+def test_normalizeheight_cli(tmp_path, sample_laz):
+    out = tmp_path / "norm.laz"
+    run = subprocess.run([sys.executable, "-m", "sylva.cli", "normalizeheight", f"--INPUT={sample_laz}",
+                          f"--OUTPUT={out}"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    src, las = laspy.read(sample_laz), laspy.read(out)
+    ground = np.asarray(src.classification) == 2
+    assert np.abs(np.asarray(las.z)[ground]).max() < 0.05  # ground is at height 0
+    np.testing.assert_allclose(np.asarray(las["elevation"]), np.asarray(src.z), atol=1e-6)
+    assert np.asarray(las.z)[~ground].max() < 60
+
+
+def test_segmenttrees_cli_is_deterministic(tmp_path, sample_laz):
+    tables = []
+    for i in range(2):
+        target = tmp_path / f"trees{i}.gpkg"
+        run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "segmenttrees",
+                              f"--INPUT={sample_laz}", f"--TREES={target}"], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        tables.append(read_gpkg(target, "trees"))
+    for name in TREE_FIELDS:
+        np.testing.assert_array_equal(tables[0].columns[name], tables[1].columns[name])
