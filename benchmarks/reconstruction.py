@@ -1,0 +1,186 @@
+"""Speed and quality of tree-skeleton reconstruction (Hu et al. 2017 greedy skeleton).
+
+    python benchmarks/reconstruction.py [--seed 1] [--size 100] [--k 16] [--per-tree]
+
+Data sets, each tree reconstructed from its own points with
+``reconstruct_tree(TreePoints(...), GreedySkeleton(...))``:
+
+* a synthetic stand (core/synth, "medium" mix of conifers, broadleaves and
+  multi-stem trees, ``--size`` metres square) scanned at 10 and 20 pulses/m2;
+  segmentation = the simulator's truth (``truth_tree``), ground_z = the
+  true terrain height at the stem;
+* ../shared/data/als/MixedConifer.laz (lidR's sample tile, ~4.7 pts/m2) with
+  lidR's ``treeID`` as segmentation, without the ground points (class 2,
+  which lidR labels with the tree above them); Z is already height above
+  ground, so ground_z = 0.  Skipped when the file is absent.
+
+Printed per data set: trees, points per tree (median), wall time per tree
+(median, p95) and CPU time per tree (median; the machine may be shared),
+milliseconds per 1,000 points, median time of each step, median visited
+fraction, share of trees with a connected graph, share connected *and*
+visited >= 85 % (the paper's hybrid threshold, §6.2: the rest go to the
+fallback), coverage (share of a tree's points within 0.5 m of its skeleton
+segments, median over trees) and, for synthetic trees, the horizontal
+distance from the skeleton root to the true stem base (median; share
+< 0.5 m; single-stem trees).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sylva.core.reconstruct import GreedySkeleton, TreePoints, reconstruct_tree
+
+HERE = Path(__file__).resolve()
+
+STEPS = ("trunk", "thinning", "graph", "direction", "skeleton")
+DATA = HERE.parents[1].parent / "shared" / "data"
+
+
+def run_trees(trees, method, bases=None, species=None):
+    """Reconstruct every tree; collect figures."""
+    rows = []
+    for i, tree in enumerate(trees):
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        rec = reconstruct_tree(tree, method)
+        wall = time.perf_counter() - t0
+        cpu = time.process_time() - c0
+        cover = float((rec.skeleton.distance(tree.xyz) < 0.5).mean())
+        row = dict(tree=tree.tree_id, n=len(tree), wall=wall, cpu=cpu, visited=rec.visited_fraction,
+                   connected=rec.connected, cover=cover, flags=",".join(rec.flags),
+                   rule=rec.stats.get("trunk_rule", "-"), nodes=len(rec.skeleton),
+                   cand=rec.stats.get("n_candidates", 0))
+        for s in STEPS:
+            row[s] = rec.stats.get(f"t_{s}_s", np.nan)
+        row["visited_all"] = rec.stats.get("visited_fraction_all", np.nan)
+        if bases is not None:
+            row["root_err"] = float(np.hypot(*(rec.skeleton.nodes[0, :2] - bases[i])))
+            row["species"] = species[i][0]
+            row["interior"] = species[i][1]
+        rows.append(row)
+    return rows
+
+
+def summarise(name, rows, per_tree=False):
+    col = lambda k: np.array([r[k] for r in rows], dtype=float)  # noqa: E731
+    n, wall, cpu, vis = col("n"), col("wall"), col("cpu"), col("visited")
+    conn = col("connected").astype(bool)
+    print(f"\n== {name}: {len(rows)} trees, median {np.median(n):.0f} points/tree "
+          f"(p5 {np.percentile(n, 5):.0f}, p95 {np.percentile(n, 95):.0f})")
+    print(f"   time per tree   wall median {np.median(wall) * 1e3:6.2f} ms   p95 {np.percentile(wall, 95) * 1e3:6.2f} ms"
+          f"   cpu median {np.median(cpu) * 1e3:6.2f} ms")
+    print(f"   per 1000 points wall {wall.sum() / n.sum() * 1e6:6.2f} ms   cpu {cpu.sum() / n.sum() * 1e6:6.2f} ms")
+    print("   per step (median ms): " + "  ".join(f"{s} {np.nanmedian(col(s)) * 1e3:.2f}" for s in STEPS))
+    print(f"   visited fraction median {np.median(vis):.3f} (incl. added trunk candidates "
+          f"{np.nanmedian(col('visited_all')):.3f})   connected {conn.mean():.1%}   "
+          f"connected & visited>=85% {(conn & (vis >= 0.85)).mean():.1%}")
+    print(f"   coverage (points within 0.5 m of the skeleton) median {np.median(col('cover')):.3f}   "
+          f"mean {np.mean(col('cover')):.3f}")
+    flags = [f for r in rows for f in r["flags"].split(",") if f]
+    if flags:
+        print("   flags: " + ", ".join(f"{f} {flags.count(f)}" for f in sorted(set(flags))))
+    if "root_err" in rows[0]:
+        single = np.array([r["species"] != "multistem" for r in rows])
+        inner = single & np.array([r["interior"] for r in rows])
+        eq3 = np.array([r["rule"] == "eq3" for r in rows])
+        err = col("root_err")
+        print(f"   root to true stem base, single-stem trees ({single.sum()}): median {np.median(err[single]):.2f} m, "
+              f"< 0.5 m {(err[single] < 0.5).mean():.1%};  of them with the crown inside the stand "
+              f"({inner.sum()}): median {np.median(err[inner]):.2f} m, < 0.5 m {(err[inner] < 0.5).mean():.1%} "
+              f"(Eq. 3 trees {(inner & eq3).sum()}: median {np.median(err[inner & eq3]) if (inner & eq3).any() else np.nan:.2f} m; "
+              f"Eq. 4 trees {(inner & ~eq3).sum()}: < 0.5 m {(err[inner & ~eq3] < 0.5).mean():.1%})")
+        if (~single).any():
+            print(f"   multi-stem trees ({(~single).sum()}): root to common stem base median {np.median(err[~single]):.2f} m")
+    if per_tree:
+        for r in rows:
+            extra = f" {r['species']:9s} root_err {r['root_err']:.2f}" if "root_err" in r else ""
+            print(f"     tree {r['tree']:4d} n {r['n']:5d} cand {r['cand']:5d} nodes {r['nodes']:5d} "
+                  f"vis {r['visited']:.2f} conn {int(r['connected'])} cover {r['cover']:.2f} "
+                  f"{r['wall'] * 1e3:6.1f} ms {r['rule']}{extra} {r['flags']}")
+
+
+def synthetic(density, seed, size):
+    from sylva.core import synth
+    stand_spec, scan_spec = synth.preset("medium", pulse_density=density, seed=seed)
+    from dataclasses import replace
+    stand_spec = replace(stand_spec, width_m=size, depth_m=size)
+    stand = synth.make_stand(stand_spec)
+    scan = synth.simulate_scan(stand, scan_spec)
+    origin = np.array([*stand.spec.origin, 0.0])
+    xyz = scan.cloud.xyz - origin
+    order = np.argsort(scan.truth_tree, kind="stable")
+    ids, start = np.unique(scan.truth_tree[order], return_index=True)
+    groups = dict(zip(ids.tolist(), np.split(order, start[1:])))
+    trees, bases, species = [], [], []
+    for t in stand.trees:
+        idx = groups.get(t.tree_id)
+        if idx is None or t.tree_id == 0:
+            continue
+        trees.append(TreePoints(t.tree_id, xyz[idx], t.ground_z))
+        base = np.array([t.x, t.y]) - origin[:2]
+        bases.append(base)
+        inside = bool((base > t.crown_radius_m).all() and (base < np.array([size, size]) - t.crown_radius_m).all())
+        species.append((t.species, inside))
+    return trees, bases, species
+
+
+def mixed_conifer():
+    path = DATA / "als" / "MixedConifer.laz"
+    if not path.exists():
+        return None
+    import laspy
+    las = laspy.read(str(path))
+    xyz = np.c_[np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]
+    xyz[:, :2] -= xyz[:, :2].min(axis=0)
+    tid = np.asarray(las.treeID, dtype=np.float64)
+    ok = np.isfinite(tid) & (tid > 0) & (tid < 1e9)        # 0 / huge = no tree
+    ok &= np.asarray(las.classification) != 2               # lidR gives ground points a treeID too
+    tid = np.where(ok, tid, 0).astype(np.int64)
+    order = np.argsort(tid, kind="stable")
+    ids, start = np.unique(tid[order], return_index=True)
+    return [TreePoints(int(i), xyz[g], 0.0) for i, g in zip(ids, np.split(order, start[1:])) if i > 0]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--size", type=float, default=100.0, help="synthetic stand side in metres")
+    ap.add_argument("--k", type=int, default=None, help="override GreedySkeleton.k")
+    ap.add_argument("--densities", default="10,20")
+    ap.add_argument("--per-tree", action="store_true")
+    ap.add_argument("--verbatim", action="store_true", help="Algorithm 2 verbatim (regrow_pruned=False)")
+    args = ap.parse_args(argv)
+    kw = {}
+    if args.k is not None:
+        kw["k"] = args.k
+    if args.verbatim:
+        kw["regrow_pruned"] = False
+    method = GreedySkeleton(**kw)
+    print(f"method: {method}")
+
+    # warm-up (imports, the thinning memo) on a throwaway tree
+    rng = np.random.default_rng(0)
+    reconstruct_tree(TreePoints(0, rng.random((300, 3)) * [4, 4, 10] + [0, 0, 5], 0.0), method)
+
+    for density in [float(d) for d in args.densities.split(",") if d]:
+        t0 = time.perf_counter()
+        trees, bases, species = synthetic(density, args.seed, args.size)
+        sim = time.perf_counter() - t0
+        rows = run_trees(trees, method, bases, species)
+        summarise(f"synthetic 'medium' stand {args.size:.0f} m, {density:g} pulses/m2 "
+                  f"(simulated in {sim:.1f} s)", rows, args.per_tree)
+
+    trees = mixed_conifer()
+    if trees is None:
+        print("\n== MixedConifer.laz: skipped (../shared/data/als/MixedConifer.laz not found)")
+    else:
+        rows = run_trees(trees, method)
+        summarise("MixedConifer.laz (lidR treeID segmentation, ground_z = 0)", rows, args.per_tree)
+
+
+if __name__ == "__main__":
+    main()
