@@ -234,7 +234,7 @@ def cone_tree():
     rng = np.random.default_rng(6)
     xyz = cone_crown(rng, centre=(5.0, 5.0), ground_z=100.0, density=20)
     tree = TreePoints(3, xyz, 100.0)
-    return tree, reconstruct_tree(tree)
+    return tree, reconstruct_tree(tree, GreedySkeleton())
 
 
 def test_greedy_skeleton_is_a_tree_rooted_on_the_ground(cone_tree):
@@ -319,7 +319,7 @@ def synth_trees():
         if m.sum() < 50:
             continue
         tp = TreePoints(t.tree_id, scan.cloud.xyz[m] - origin, t.ground_z)
-        out.append((t, tp, reconstruct_tree(tp), np.array([t.x, t.y]) - origin[:2]))
+        out.append((t, tp, reconstruct_tree(tp, GreedySkeleton()), np.array([t.x, t.y]) - origin[:2]))
     assert len(out) >= 5
     return out
 
@@ -361,7 +361,7 @@ def test_best_sampled_synth_tree_visits_over_90_percent(synth_trees):
     (np.c_[np.random.default_rng(0).random((40, 2)) * 3, np.full(40, 8.0)], "coplanar_points"),
 ])
 def test_degenerate_trees_are_flagged_with_a_minimal_stem(xyz, flag):
-    rec = reconstruct_tree(TreePoints(11, xyz, 1.0))
+    rec = reconstruct_tree(TreePoints(11, xyz, 1.0), GreedySkeleton())
     assert rec.flags == [flag]
     assert rec.visited_fraction == 0.0 and not rec.connected
     sk = rec.skeleton
@@ -391,7 +391,7 @@ def test_lowest_point_on_the_ground_gives_a_clean_trunk():
     rng = np.random.default_rng(12)
     stem = line([0, 0, 0], [0, 0, 5], 20)                       # lowest point exactly at ground_z
     crown = rng.random((300, 3)) * [4, 4, 8] + [-2, -2, 5]
-    rec = reconstruct_tree(TreePoints(1, np.r_[stem, crown], 0.0))
+    rec = reconstruct_tree(TreePoints(1, np.r_[stem, crown], 0.0), GreedySkeleton())
     assert rec.stats["trunk_rule"] == "eq3" and rec.stats["n_added"] == 1     # just the root
     sk = rec.skeleton
     np.testing.assert_allclose(sk.nodes[0], [0, 0, 0])
@@ -403,7 +403,7 @@ def test_lowest_point_on_the_ground_gives_a_clean_trunk():
 def test_points_below_ground_are_flagged_not_fatal():
     rng = np.random.default_rng(8)
     xyz = cone_crown(rng)
-    rec = reconstruct_tree(TreePoints(1, np.r_[xyz, [[0.1, 0.1, -0.4]]], 0.0))
+    rec = reconstruct_tree(TreePoints(1, np.r_[xyz, [[0.1, 0.1, -0.4]]], 0.0), GreedySkeleton())
     assert "points_below_ground" in rec.flags
     assert rec.skeleton.nodes[0, 2] == pytest.approx(-0.4)
 
@@ -411,7 +411,7 @@ def test_points_below_ground_are_flagged_not_fatal():
 def test_determinism():
     rng = np.random.default_rng(9)
     tree = TreePoints(2, cone_crown(rng, density=15), 0.0)
-    a, b = reconstruct_tree(tree), reconstruct_tree(tree)
+    a, b = reconstruct_tree(tree, GreedySkeleton()), reconstruct_tree(tree, GreedySkeleton())
     np.testing.assert_array_equal(a.skeleton.nodes, b.skeleton.nodes)
     np.testing.assert_array_equal(a.skeleton.parent, b.skeleton.parent)
     assert a.visited_fraction == b.visited_fraction and a.flags == b.flags
@@ -421,10 +421,10 @@ def test_progress_cancel_and_dispatch():
     rng = np.random.default_rng(10)
     tree = TreePoints(2, cone_crown(rng, density=10), 0.0)
     seen = []
-    reconstruct_tree(tree, progress=lambda f, m: seen.append(f))
+    reconstruct_tree(tree, GreedySkeleton(), progress=lambda f, m: seen.append(f))
     assert seen == sorted(seen) and seen[-1] == 1.0
     with pytest.raises(Cancelled):
-        reconstruct_tree(tree, cancelled=lambda: True)
+        reconstruct_tree(tree, GreedySkeleton(), cancelled=lambda: True)
 
     class Stub:
         def reconstruct(self, tree, progress=None, cancelled=None):

@@ -1,13 +1,15 @@
 """Tree reconstruction: one generic verb, methods as values.
 
     from sylva.core.reconstruct import TreePoints, reconstruct_tree, GreedySkeleton
+    rec = reconstruct_tree(TreePoints(7, xyz, ground_z=0.0))          # Hybrid(): Hu §6.2
     rec = reconstruct_tree(TreePoints(7, xyz, ground_z=0.0), GreedySkeleton(alpha_max_deg=60))
     rec.skeleton.nodes, rec.skeleton.parent, rec.visited_fraction, rec.flags
 
 A method is a small frozen dataclass of its parameters with a
 ``reconstruct(tree, progress=None, cancelled=None) -> Reconstruction`` method;
-adding a method adds a module (``skeleton.py``: Hu et al. 2017; later
-``colonize.py``: Guo et al.), not a branch here.
+adding a method adds a module (``skeleton.py``: Hu et al. 2017;
+``colonize.py``: Guo et al. 2018; ``hybrid.py``: Hu §6.2's rule, the greedy
+skeleton with guided growth as the fallback, the default), not a branch here.
 
 Trees too small or too degenerate to model (fewer than ``min_points``
 points, fewer distinct points, all points within 1 cm of a line or of a
@@ -22,15 +24,17 @@ from __future__ import annotations
 from ..errors import InputError
 from ..progress import CancelCheck, Progress
 from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
+from .colonize import GuidedGrowth
+from .hybrid import Hybrid
 from .skeleton import GreedySkeleton
 
-__all__ = ["TreePoints", "Skeleton", "Reconstruction", "GreedySkeleton", "reconstruct_tree",
-           "minimal_skeleton"]
+__all__ = ["TreePoints", "Skeleton", "Reconstruction", "GreedySkeleton", "GuidedGrowth", "Hybrid",
+           "reconstruct_tree", "minimal_skeleton"]
 
 
-def reconstruct_tree(tree: TreePoints, method=GreedySkeleton(), progress: Progress = None,
+def reconstruct_tree(tree: TreePoints, method=Hybrid(), progress: Progress = None,
                      cancelled: CancelCheck = None) -> Reconstruction:
-    """Reconstruct the skeleton of one tree with ``method`` (default: Hu et al.'s greedy skeleton).
+    """Reconstruct the skeleton of one tree with ``method`` (default: the Hu §6.2 hybrid).
 
     ``progress(fraction, message)`` and ``cancelled()`` are the optional
     callbacks of :mod:`sylva.core.progress`; a positive ``cancelled()``
