@@ -24,19 +24,27 @@ class CliFeedback(S.Feedback):
 
     def __init__(self, quiet: bool = False):
         self.quiet = quiet
+        self.tty = sys.stderr.isatty()
         self._last = -1
+        self._open = False  # a progress line is being rewritten in place
 
     def progress(self, fraction: float, message: str = "") -> None:
         pct = int(fraction * 100)
-        if not self.quiet and pct != self._last:
-            self._last = pct
+        if self.quiet or pct == self._last or (not self.tty and pct // 10 == self._last // 10):
+            return
+        self._last = pct
+        if self.tty:
             print(f"\r{pct:3d}% {message[:60]:<60}", end="", file=sys.stderr, flush=True)
-            if pct >= 100:
+            self._open = pct < 100
+            if not self._open:
                 print(file=sys.stderr)
+        else:
+            print(f"{pct:3d}% {message}", file=sys.stderr)
 
     def info(self, message: str) -> None:
         if not self.quiet:
-            print(f"\n{message}" if 0 <= self._last < 100 else message, file=sys.stderr)
+            print(f"\n{message}" if self._open else message, file=sys.stderr)
+            self._open = False
 
     warn = info
 

@@ -70,7 +70,7 @@ def method_params(cls, texts: dict, advanced: tuple = ()) -> tuple:
         default = defaults[field]
         kind = BOOLEAN if isinstance(default, bool) else INTEGER if isinstance(default, int) else NUMBER
         params.append(Param(field.upper(), kind, description, default=default,
-                            minimum=None if kind == BOOLEAN else 0.0, help=text,
+                            minimum=None if kind == BOOLEAN or field.endswith("_deg") else 0.0, help=text,
                             advanced=field in advanced))
     return tuple(params)
 

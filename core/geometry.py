@@ -864,3 +864,51 @@ def total_branch_length(skeleton: Skeleton, include_stem: bool = False) -> float
         return total
     stem = branches(skeleton, _stored_radii(skeleton)).chains[0]
     return float(total - np.linalg.norm(np.diff(skeleton.nodes[stem], axis=0), axis=1).sum())
+
+
+# --------------------------------------------------------------------------- simplification
+
+def simplify_skeleton(skeleton: Skeleton, tolerance_m: float = 0.05, max_passes: int = 8) -> Skeleton:
+    """Drop pass-through nodes that lie within ``tolerance_m`` of the segment joining their
+    parent and their only child (a Douglas–Peucker-like thinning of every chain).
+
+    Branching nodes, tips and the root stay.  Each pass removes an independent set of
+    nodes (no removed node's parent is removed in the same pass, alternating by depth
+    parity), so the tolerance holds against the nodes kept; vectorised per pass.
+    Radii, when present, are carried by the kept nodes.
+    """
+    skeleton = _check_skeleton(skeleton)
+    nodes, parent = skeleton.nodes, skeleton.parent
+    radius, added = skeleton.radius, skeleton.is_added
+    for k in range(max_passes):
+        m = len(nodes)
+        if m < 3:
+            break
+        kids = np.bincount(parent[parent >= 0], minlength=m)
+        only_child = np.full(m, -1, dtype=np.int64)
+        has_parent = np.flatnonzero(parent >= 0)
+        only_child[parent[has_parent]] = has_parent  # valid where kids == 1
+        cand = np.flatnonzero((kids == 1) & (parent >= 0))
+        depth = _depth(parent)
+        cand = cand[depth[cand] % 2 == k % 2]
+        if len(cand) == 0:
+            continue
+        p, c = nodes[parent[cand]], nodes[only_child[cand]]
+        seg = c - p
+        length2 = np.maximum((seg * seg).sum(axis=1), 1e-18)
+        t = np.clip(((nodes[cand] - p) * seg).sum(axis=1) / length2, 0.0, 1.0)
+        dist = np.linalg.norm(nodes[cand] - (p + t[:, None] * seg), axis=1)
+        drop = cand[dist <= tolerance_m]
+        if len(drop) == 0:
+            if k >= 1:
+                break
+            continue
+        new_parent = parent.copy()
+        new_parent[only_child[drop]] = parent[drop]
+        keep = np.ones(m, dtype=bool)
+        keep[drop] = False
+        index = np.cumsum(keep) - 1
+        kept_parent = new_parent[keep]
+        parent = np.where(kept_parent >= 0, index[np.maximum(kept_parent, 0)], -1)
+        nodes, radius, added = nodes[keep], radius[keep], added[keep]
+    return Skeleton(nodes, parent, radius, added)

@@ -153,3 +153,91 @@ def tree_metrics(cloud: PointCloud, labels: np.ndarray, hull: str = "convex", co
         crowns=crowns,
         is_stem=is_stem,
     )
+
+
+# --------------------------------------------------------------------------- DBH
+
+#: Jucker et al. (2017), "Allometric equations for integrating remote sensing imagery into forest
+#: monitoring programmes", Global Change Biology 23: 177-190: the global model
+#: DBH [cm] = 0.557 (H [m] x CD [m])^0.809 exp(0.056^2 / 2).
+JUCKER_ALPHA, JUCKER_BETA, JUCKER_SIGMA = 0.557, 0.809, 0.056
+
+
+def allometric_dbh_m(height_m, crown_diameter_m) -> np.ndarray:
+    """DBH (m) from tree height and crown diameter by Jucker et al. (2017)'s global equation."""
+    h = np.maximum(np.asarray(height_m, dtype=np.float64), 0.0)
+    cd = np.maximum(np.asarray(crown_diameter_m, dtype=np.float64), 0.0)
+    cm = JUCKER_ALPHA * (h * cd) ** JUCKER_BETA * np.exp(JUCKER_SIGMA ** 2 / 2.0)
+    return cm / 100.0
+
+
+@dataclass(frozen=True)
+class StemCircle:
+    """A circle fitted to stem points at breast height (local metres)."""
+
+    x: float
+    y: float
+    radius: float
+    rms: float
+    n_points: int
+    arc_deg: float
+
+
+def fit_stem_circle(xy: np.ndarray) -> Optional[StemCircle]:
+    """Least-squares circle (Kasa's algebraic fit, refined by Gauss-Newton) of horizontal positions."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if len(xy) < 3:
+        return None
+    c = xy.mean(axis=0)
+    p = xy - c
+    a = np.column_stack([2 * p, np.ones(len(p))])
+    b = (p ** 2).sum(axis=1)
+    try:
+        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    centre = sol[:2]
+    r = np.sqrt(max(sol[2] + centre @ centre, 0.0))
+    for _ in range(10):  # geometric refinement: minimise sum (|p - c| - r)^2
+        d = p - centre
+        dist = np.linalg.norm(d, axis=1)
+        if np.any(dist < 1e-12):
+            break
+        jac = np.column_stack([-d / dist[:, None], -np.ones(len(p))])
+        res = dist - r
+        step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
+        centre, r = centre + step[:2], r + step[2]
+        if np.abs(step).max() < 1e-7:
+            break
+    d = p - centre
+    ang = np.sort(np.arctan2(d[:, 1], d[:, 0]))
+    gaps = np.diff(np.concatenate([ang, [ang[0] + 2 * np.pi]]))
+    arc = np.degrees(2 * np.pi - gaps.max())
+    rms = float(np.sqrt(np.mean((np.linalg.norm(d, axis=1) - r) ** 2)))
+    return StemCircle(float(centre[0] + c[0]), float(centre[1] + c[1]), float(abs(r)), rms, len(xy), float(arc))
+
+
+@dataclass(frozen=True)
+class DbhRule:
+    """When a DBH is `measured`: at least ``min_points`` stem points within ``band_m`` of
+    1.3 m above the ground covering ``min_arc_deg`` of the circle, and a plausible, tight fit."""
+
+    breast_height_m: float = 1.3
+    band_m: float = 0.25
+    min_points: int = 8
+    min_arc_deg: float = 120.0
+    max_rms_m: float = 0.03
+    max_radius_m: float = 1.5
+
+
+def estimate_dbh(local_xyz: np.ndarray, height_m: np.ndarray, tree_height_m: float, crown_diameter_m: float,
+                 rule: DbhRule = DbhRule()):
+    """(dbh_m, source): a circle fit at breast height when the points allow it, else Jucker et al. (2017)."""
+    h = np.asarray(height_m)
+    band = np.abs(h - rule.breast_height_m) <= rule.band_m
+    if band.sum() >= rule.min_points:
+        circle = fit_stem_circle(local_xyz[band, :2])
+        if (circle is not None and circle.arc_deg >= rule.min_arc_deg and circle.rms <= rule.max_rms_m
+                and 0.01 <= circle.radius <= rule.max_radius_m):
+            return 2.0 * circle.radius, "measured"
+    return float(allometric_dbh_m(tree_height_m, crown_diameter_m)), "allometric"

@@ -1,6 +1,7 @@
 """VectorTable: a layer as plain arrays (geometries + attribute columns + CRS).
 
-Core functions return VectorTables; the front ends write them: the CLI to a
+Geometries are shapely objects, or ISO WKB ``bytes`` for measured (M)
+geometries, which shapely cannot hold.  Core functions return VectorTables; the front ends write them: the CLI to a
 GeoPackage (:mod:`sylva.core.io.gpkg`), the Processing layer to a QGIS
 feature sink (so any format QGIS supports, and temporary layers inside a
 Graphical Modeler graph).  Column dtypes decide field types: integers ->
@@ -24,6 +25,7 @@ class VectorTable:
     columns: dict = field(default_factory=dict)  # field name -> (n,) array, in field order
     crs: Any = None                      # pyproj.CRS or None
     has_z: bool = True
+    has_m: bool = False                  # geometries are then ISO WKB bytes (shapely has no M)
 
     def __post_init__(self):
         if self.geometry_type not in GEOMETRY_TYPES:
@@ -60,3 +62,19 @@ def python_values(values: np.ndarray, kind: str) -> list:
     if kind == "real":
         return [None if not np.isfinite(v) else float(v) for v in arr.astype(float)]
     return [None if v is None else str(v) for v in arr]
+
+
+def multilinestring_zm_wkb(parts) -> bytes:
+    """ISO WKB of a MultiLineString ZM from a list of (k, 4) arrays of x, y, z, m.
+
+    Shapely has no M coordinate; Sylva's skeleton lines carry the branch
+    radius as M, so they are encoded here (little endian, types 3005 / 3002).
+    """
+    import struct
+
+    chunks = [struct.pack("<BII", 1, 3005, len(parts))]
+    for part in parts:
+        coords = np.ascontiguousarray(part, dtype="<f8").reshape(-1, 4)
+        chunks.append(struct.pack("<BII", 1, 3002, len(coords)))
+        chunks.append(coords.tobytes())
+    return b"".join(chunks)

@@ -21,15 +21,14 @@ through Pillow when it is installed, else through a minimal zlib PNG writer.
 """
 from __future__ import annotations
 
-import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 from typing import Dict, Tuple
 
 import numpy as np
 
+from .atomic import atomic_open
 from .errors import InputError
 
 __all__ = ["LEAF_SHAPES", "SPECIES_SHAPES", "leaf_texture", "leaf_aspect", "write_png", "read_png_size"]
@@ -199,25 +198,17 @@ def _png_bytes(rgba: np.ndarray) -> bytes:
 
 
 def write_png(path, rgba: np.ndarray) -> Path:
-    """Write an (h, w, 4) uint8 image as PNG: to a temporary name, then ``os.replace``."""
+    """Write an (h, w, 4) uint8 image as PNG, atomically."""
     rgba = np.asarray(rgba)
     if rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
         raise InputError(f"{path}: expected an (h, w, 4) uint8 RGBA image, got {rgba.shape} {rgba.dtype}")
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            try:
-                from PIL import Image
-                Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(fh, format="PNG", optimize=True)
-            except ImportError:
-                fh.write(_png_bytes(rgba))
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    with atomic_open(path) as fh:
+        try:
+            from PIL import Image
+            Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(fh, format="PNG", optimize=True)
+        except ImportError:
+            fh.write(_png_bytes(rgba))
+    return Path(path)
 
 
 def read_png_size(path) -> Tuple[int, int]:

@@ -20,6 +20,8 @@ REQUIRED: Tuple[Tuple[str, str], ...] = (
     ("trimesh", "trimesh"),
     ("tifffile", "tifffile"),
     ("geographiclib", "geographiclib"),
+    ("lxml", "lxml"),
+    ("PIL", "pillow"),
 )
 
 

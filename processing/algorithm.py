@@ -40,7 +40,8 @@ from ..plugin import deps
 
 _SINK_TYPES = {S.POINT: QgsProcessing.TypeVectorPoint, S.LINE: QgsProcessing.TypeVectorLine,
                S.POLYGON: QgsProcessing.TypeVectorPolygon, S.NO_GEOMETRY: QgsProcessing.TypeVector}
-_WKB = {("point", True): QgsWkbTypes.PointZ, ("point", False): QgsWkbTypes.Point,
+_WKB = {("line", "zm"): QgsWkbTypes.MultiLineStringZM,
+        ("point", True): QgsWkbTypes.PointZ, ("point", False): QgsWkbTypes.Point,
         ("line", True): QgsWkbTypes.MultiLineStringZ, ("line", False): QgsWkbTypes.MultiLineString,
         ("polygon", True): QgsWkbTypes.MultiPolygonZ, ("polygon", False): QgsWkbTypes.MultiPolygon,
         ("none", True): QgsWkbTypes.NoGeometry, ("none", False): QgsWkbTypes.NoGeometry}
@@ -183,7 +184,8 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         for column, kind in types.items():
             fields.append(QgsField(column, _QVARIANT[kind]))
         sink, dest_id = self.parameterAsSink(
-            parameters, name, context, fields, _WKB[(table.geometry_type, table.has_z)], to_qgs_crs(table.crs))
+            parameters, name, context, fields,
+            _WKB[(table.geometry_type, "zm" if table.has_m else table.has_z)], to_qgs_crs(table.crs))
         if sink is None:
             return None
         import shapely
@@ -191,7 +193,9 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         from ..core.table import python_values
 
         wkb = None
-        if table.geometries is not None:
+        if table.has_m:
+            wkb = table.geometries  # already ISO WKB
+        elif table.geometries is not None:
             wkb = shapely.to_wkb(table.geometries, output_dimension=3 if table.has_z else 2, flavor="iso")
         columns = [python_values(table.columns[c], types[c]) for c in types]
         n = len(table)

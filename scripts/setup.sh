@@ -4,8 +4,13 @@
 #   - a virtual environment .venv on Debian's python3 that also sees the QGIS bindings,
 #     with Sylva and its Python dependencies from PyPI (pip install -e .[test]),
 #   - a QGIS profile in .qgis-profile with the plugin enabled, for qgis_process.
+# With --viewers (what scripts/test.sh asks for) it also installs the real 3D viewers the export
+# tests drive: Chromium (Debian), Node.js packages in tools/viewers (npm: glTF validator, loaders.gl,
+# CesiumJS) and, when Maven is present, the CityGML schemas (citygml4j from Maven Central).
 # A second run only checks and returns in a few seconds.
 set -euo pipefail
+viewers=0
+[ "${1:-}" = "--viewers" ] && viewers=1
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
@@ -13,8 +18,13 @@ sudo_cmd=""
 if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
 
 debs="qgis python3-qgis qgis-providers python3-venv"
-if ! dpkg-query -W -f='${Status}\n' $debs 2>/dev/null | grep -c "install ok installed" | grep -qx 4; then
-    echo "setup: installing QGIS from Debian's packages (about a minute)..."
+if [ "$viewers" = 1 ]; then
+    debs="$debs chromium"
+    command -v node >/dev/null 2>&1 || debs="$debs nodejs npm"
+fi
+want_n=$(echo $debs | wc -w)
+if ! dpkg-query -W -f='${Status}\n' $debs 2>/dev/null | grep -c "install ok installed" | grep -qx "$want_n"; then
+    echo "setup: installing from Debian's packages: $debs (a minute or two)..."
     $sudo_cmd apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends $debs >/dev/null
 fi
@@ -39,4 +49,19 @@ if ! grep -qs "^sylva=true" "$QGIS_CUSTOM_CONFIG_PATH/profiles/default/QGIS/QGIS
     qgis_process.bin plugins enable sylva >/dev/null 2>&1 || true
     grep -qs "^sylva=true" "$QGIS_CUSTOM_CONFIG_PATH/profiles/default/QGIS/QGIS3.ini" \
         || { echo "setup: could not enable the sylva plugin in $QGIS_CUSTOM_CONFIG_PATH" >&2; exit 1; }
+fi
+
+if [ "$viewers" = 1 ]; then
+    lock="tools/viewers/package-lock.json"
+    stamp_v="tools/viewers/node_modules/.sylva-installed"
+    if [ "$(cat "$stamp_v" 2>/dev/null)" != "$(sha256sum "$lock" | cut -d' ' -f1)" ]; then
+        echo "setup: installing the viewer checks' npm packages (tools/viewers)..."
+        (cd tools/viewers && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
+        sha256sum "$lock" | cut -d' ' -f1 > "$stamp_v"
+    fi
+    if command -v mvn >/dev/null 2>&1 && ! ls ~/.m2/repository/org/citygml4j/citygml4j-xml/3.0.0/*.jar >/dev/null 2>&1; then
+        echo "setup: fetching the CityGML schemas (citygml4j-xml from Maven Central)..."
+        mvn -q dependency:get -Dartifact=org.citygml4j:citygml4j-xml:3.0.0 -Dtransitive=false >/dev/null \
+            || echo "setup: could not fetch citygml4j; the CityGML schema tests will skip" >&2
+    fi
 fi

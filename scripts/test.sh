@@ -3,7 +3,7 @@
 # Extra arguments go to pytest, e.g.  bash scripts/test.sh -k treetops
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$root/scripts/setup.sh"
+bash "$root/scripts/setup.sh" --viewers
 cd "$root"
 # shellcheck source=scripts/env.sh
 . scripts/env.sh

@@ -240,7 +240,7 @@ def cone_tree():
 def test_greedy_skeleton_is_a_tree_rooted_on_the_ground(cone_tree):
     tree, rec = cone_tree
     sk = rec.skeleton
-    assert isinstance(rec, Reconstruction) and rec.method == "GreedySkeleton"
+    assert isinstance(rec, Reconstruction) and rec.method == "greedy_skeleton"
     assert sk.parent[0] == -1 and (sk.parent == -1).sum() == 1
     assert (sk.parent[1:] < np.arange(1, len(sk))).all() and (sk.parent[1:] >= 0).all()
     assert sk.nodes[0, 2] == 100.0

@@ -8,7 +8,6 @@ Files are written to a temporary name and renamed when complete.
 """
 from __future__ import annotations
 
-import os
 import sqlite3
 import struct
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Iterable, List
 import numpy as np
 import shapely
 
+from ..atomic import atomic_path
 from ..errors import InputError
 from ..table import VectorTable, python_values
 
@@ -43,24 +43,15 @@ def _header(srs_id: int, empty: bool) -> bytes:
 
 def write_gpkg(path, tables: Iterable[VectorTable]) -> Path:
     """Write ``tables`` as the layers of one new GeoPackage at ``path`` (replaced if present)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tables: List[VectorTable] = list(tables)
-    try:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp:
         con = sqlite3.connect(tmp)
         try:
             _write(con, tables)
             con.commit()
         finally:
             con.close()
-        os.replace(tmp, path)
-    except BaseException:
-        if tmp.exists():
-            tmp.unlink()
-        raise
-    return path
+    return Path(path)
 
 
 def _write(con: sqlite3.Connection, tables: List[VectorTable]) -> None:
@@ -110,7 +101,13 @@ def _write_table(con: sqlite3.Connection, table: VectorTable) -> None:
     n = len(table)
     values = [python_values(v, types[c]) for c, v in table.columns.items()]
     bounds = (None,) * 4
-    if spatial:
+    if spatial and table.has_m:
+        header = _header(srs_id, False)
+        values = [[None if w is None else header + w for w in table.geometries]] + values
+        geoms = np.array([None if w is None else shapely.from_wkb(w) for w in table.geometries], dtype=object)
+        if n:
+            bounds = tuple(float(v) for v in shapely.total_bounds(geoms))
+    elif spatial:
         geoms = _promote(np.asarray(table.geometries, dtype=object), table.geometry_type)
         blobs = _blobs(geoms, srs_id, table.has_z)
         values = [blobs] + values
@@ -131,8 +128,9 @@ def _write_table(con: sqlite3.Connection, table: VectorTable) -> None:
     )
     if spatial:
         con.execute(
-            "INSERT INTO gpkg_geometry_columns VALUES (?,?,?,?,?,0)",
-            (name, "geom", _GEOMETRY_NAMES[table.geometry_type], srs_id, 1 if table.has_z else 0),
+            "INSERT INTO gpkg_geometry_columns VALUES (?,?,?,?,?,?)",
+            (name, "geom", _GEOMETRY_NAMES[table.geometry_type], srs_id, 1 if table.has_z else 0,
+             1 if table.has_m else 0),
         )
 
 

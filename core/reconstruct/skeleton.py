@@ -275,7 +275,7 @@ class GreedySkeleton:
     min_visited_fraction: float = 0.85
     regrow_pruned: bool = True
 
-    name = "GreedySkeleton"
+    name = "greedy_skeleton"
 
     def __post_init__(self):
         positive = ("voxel_m", "radius_m", "k1", "k2", "trunk_radius_m", "trunk_spacing_m")

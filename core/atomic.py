@@ -1,0 +1,57 @@
+"""Write files so that a failure or a cancel never leaves a half-written output behind.
+
+Everything is written under a temporary name in the destination folder and
+moved into place with ``os.replace`` (atomic on one file system) only when
+complete; on any exception the temporary file is removed.  New files get
+the usual permissions (0666 minus the umask), not mkstemp's 0600.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import InputError
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextmanager
+def atomic_path(path):
+    """``with atomic_path(out) as tmp:`` write ``tmp`` (a Path); it becomes ``out`` on success."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"{path}: the output folder {path.parent} does not exist")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a file name")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=str(path.parent))
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+
+
+@contextmanager
+def atomic_open(path, mode: str = "wb"):
+    """``with atomic_open(out) as fh:`` write a stream; it becomes ``out`` on success."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode) as fh:
+            yield fh
+
+
+def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_open(path) as fh:
+        fh.write(data)
+    return Path(path)

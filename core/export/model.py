@@ -1,0 +1,177 @@
+"""What the exporters take: :class:`TreeModel` (one reconstructed tree) and :class:`ExportFrame` (its CRS).
+
+A tree model is in METRES in a local frame whose origin is the tree's base:
+``x`` = grid east, ``y`` = grid north, ``z`` = up (the frame reconstruction
+works in: the source CRS's grid axes scaled to metres, ARCHITECTURE.md
+"Coordinates stay in the source CRS in files; computation happens in a local
+metric frame").  ``base`` places that frame in the source CRS: x, y in the
+CRS's horizontal unit and z (the ground elevation under the stem) in its
+vertical unit.  So a model vertex ``v`` (metres) lies at
+``base + v / (h, h, v_unit)`` in source CRS coordinates.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Dict, Optional
+
+import numpy as np
+
+from ..cloud import METRES, Units
+from ..atomic import atomic_open, atomic_write_bytes  # noqa: F401 (re-exported to the writers)
+from ..errors import CRSError, InputError
+
+__all__ = ["TreeModel", "ExportFrame", "check_models", "json_scalar"]
+
+
+def json_scalar(value):
+    """A JSON-serialisable scalar for an attribute value (numpy scalars unwrapped, NaN -> None)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)
+
+
+@dataclass
+class TreeModel:
+    """One tree ready for export.
+
+    ``tree_id`` stable tree id (as in the ``trees`` layer and the LAS ``treeID``);
+    ``base`` (3,) the stem base in SOURCE CRS coordinates (ground z);
+    ``wood`` a :class:`trimesh.Trimesh` in local metres (origin = base, x grid
+    east, y grid north, z up); ``leaves`` a :class:`sylva.core.leaves.LeafMesh`
+    in the same frame, or None; ``attributes`` JSON scalars (tree_id, height,
+    crown_diameter, crown_base_height, dbh, dbh_source, species, method, ...);
+    ``lods`` optional coarser wood meshes by level (0 = coarsest), same frame.
+    """
+
+    tree_id: int
+    base: np.ndarray
+    wood: Any
+    leaves: Any = None
+    attributes: Dict[str, Any] = field(default_factory=dict)
+    lods: Dict[int, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.tree_id = int(self.tree_id)
+        self.base = np.asarray(self.base, dtype=np.float64).reshape(-1)
+        if self.base.shape != (3,) or not np.all(np.isfinite(self.base)):
+            raise InputError(f"tree {self.tree_id}: base must be three finite coordinates "
+                             f"(x, y, ground z in the source CRS), got {self.base.tolist()}")
+
+    @property
+    def name(self) -> str:
+        return f"tree_{self.tree_id}"
+
+    def json_attributes(self) -> Dict[str, Any]:
+        """``attributes`` as JSON scalars, with ``tree_id`` always present and first."""
+        out = {"tree_id": self.tree_id}
+        for k in sorted(self.attributes):
+            if k != "tree_id":
+                out[str(k)] = json_scalar(self.attributes[k])
+        return out
+
+    def wood_arrays(self, lod: Optional[int] = None):
+        """(vertices (v, 3) float64, faces (f, 3) int64) of the wood, or of ``lods[lod]``."""
+        mesh = self.wood if lod is None else self.lods[lod]
+        return _mesh_arrays(mesh, f"tree {self.tree_id}" + ("" if lod is None else f" lod {lod}"))
+
+    def leaf_arrays(self):
+        """(vertices, faces, uvs) of the leaves (empty arrays when there are none)."""
+        lv = self.leaves
+        if lv is None or len(np.asarray(lv.faces)) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 2))
+        v = np.asarray(lv.vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(lv.faces, dtype=np.int64).reshape(-1, 3)
+        uv = np.asarray(lv.uvs, dtype=np.float64).reshape(-1, 2)
+        if len(uv) != len(v) or (len(f) and (f.min() < 0 or f.max() >= len(v))) or not np.all(np.isfinite(v)):
+            raise InputError(f"tree {self.tree_id}: leaf mesh is inconsistent "
+                             f"({len(v)} vertices, {len(uv)} uvs, faces index up to {f.max() if len(f) else -1})")
+        return v, f, uv
+
+    def all_local_vertices(self) -> np.ndarray:
+        parts = [self.wood_arrays()[0], self.leaf_arrays()[0]]
+        parts += [self.wood_arrays(k)[0] for k in sorted(self.lods)]
+        return np.concatenate(parts)
+
+
+def _mesh_arrays(mesh, where):
+    if mesh is None:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{where}: the mesh has non-finite vertex coordinates")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise InputError(f"{where}: mesh faces index vertices that do not exist")
+    return v, f
+
+
+def check_models(models, what: str = "export"):
+    """A list of TreeModel; raises InputError for an empty list, duplicates or a tree without geometry."""
+    models = list(models)
+    if not models:
+        raise InputError(f"{what}: no trees to write")
+    seen = set()
+    for m in models:
+        if not isinstance(m, TreeModel):
+            raise InputError(f"{what}: expected TreeModel objects, got {type(m).__name__}")
+        if m.tree_id in seen:
+            raise InputError(f"{what}: tree id {m.tree_id} occurs twice")
+        seen.add(m.tree_id)
+        wv, wf = m.wood_arrays()
+        _, lf, _ = m.leaf_arrays()
+        if len(wf) == 0 and len(lf) == 0:
+            raise InputError(f"{what}: tree {m.tree_id} has an empty mesh (no wood and no leaf faces); "
+                             f"leave it out or rebuild its geometry")
+    return models
+
+
+@dataclass(frozen=True)
+class ExportFrame:
+    """The source CRS of the models' ``base`` coordinates.
+
+    ``crs`` a :class:`pyproj.CRS` or anything pyproj accepts (``"EPSG:32632"``,
+    an EPSG integer, WKT); None for a purely local engineering frame.
+    ``units`` metres per unit of the horizontal and vertical axes (default:
+    from the CRS as :func:`sylva.core.io.las.units_of` reads them, vertical =
+    horizontal unless the CRS has a vertical axis — the LAS convention).
+    """
+
+    crs: Any = None
+    units: Optional[Units] = None
+
+    def pyproj_crs(self):
+        if self.crs is None:
+            return None
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError as ProjCRSError
+
+        if isinstance(self.crs, CRS):
+            return self.crs
+        try:
+            return CRS.from_user_input(self.crs)
+        except ProjCRSError as exc:
+            raise CRSError(f"export: the CRS {str(self.crs)[:80]!r} is not understood by PROJ: {exc}")
+
+    def resolved_units(self) -> Units:
+        if self.units is not None:
+            return self.units
+        crs = self.pyproj_crs()
+        if crs is None:
+            return METRES
+        from ..io.las import units_of
+
+        units = units_of(crs)
+        if math.isnan(units.horizontal_m):
+            raise CRSError(f"export: the CRS {crs.name!r} is geographic (degrees); tree bases "
+                           f"must be in a projected CRS — reproject the point cloud first")
+        return units
+
+    @classmethod
+    def from_cloud(cls, cloud) -> "ExportFrame":
+        """The frame of a :class:`sylva.core.cloud.PointCloud` (its CRS and units)."""
+        return cls(crs=cloud.crs, units=cloud.units)

@@ -1,0 +1,138 @@
+"""From a segmented cloud to a modelled forest: one skeleton, mesh, leaves and record per tree.
+
+    trees = model_trees(cloud, labels, metrics, ModelOptions())
+
+``cloud`` is height-normalised (attribute ``height``), ``labels`` its
+treeID per point and ``metrics`` the :class:`~sylva.core.measure.TreeMetrics`
+of that segmentation.  Each tree's points go, in the tile's local metric
+frame, to :func:`~sylva.core.reconstruct.reconstruct_tree` (default: the
+Hu et al. §6.2 hybrid, greedy skeleton with guided growth as the fallback,
+so every tree gets a model); the skeleton gets radii (pipe model, Hu Eq. 6,
+scaled so the stem at the base has the tree's DBH) and becomes a mesh and
+leaf cards (:mod:`sylva.core.geometry`, :mod:`sylva.core.leaves`).
+
+Trees with fewer than ``min_points`` points are not dropped: they get the
+minimal stem the reconstruction gives them and ``quality = "noise"``.
+"""
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
+from typing import Any, List, Optional
+
+import numpy as np
+
+from .cloud import PointCloud
+from .geometry import (branch_count, pipe_model_radii, simplify_skeleton, total_branch_length, tree_mesh,
+                       with_radii, wood_volume)
+from .leaves import LeafCards, NeedleClusters, grow_leaves
+from .measure import TreeMetrics, estimate_dbh
+from .progress import CancelCheck, Progress, check, report
+from .reconstruct import Hybrid, TreePoints, reconstruct_tree
+
+LEAVES = ("auto", "broadleaf", "needles", "none")
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    method: Any = Hybrid()
+    lod: int = 1
+    leaves: str = "auto"          # auto: needles for conical crowns, leaf cards otherwise
+    leaf_shape: str = "ovate"
+    tip_radius_m: float = 0.01
+    simplify_m: float = 0.05      # skeleton nodes closer than this to a straight run are dropped
+    min_points: int = 10
+
+
+@dataclass(eq=False)
+class ModelledTree:
+    tree_id: int
+    base_local: np.ndarray        # stem base, tile-local metres
+    skeleton: Any                 # Skeleton with radii, tile-local metres
+    wood: Any                     # trimesh.Trimesh, metres, origin at the base
+    leaves: Any                   # LeafMesh (origin at the base) or None
+    record: dict = field(default_factory=dict)
+
+
+def _groups(labels: np.ndarray):
+    idx = np.flatnonzero(labels > 0)
+    order = idx[np.argsort(labels[idx], kind="stable")]
+    lab = labels[order]
+    cuts = np.flatnonzero(np.diff(lab)) + 1
+    return lab[np.concatenate([[0], cuts])] if len(lab) else np.zeros(0, int), np.split(order, cuts)
+
+
+def is_conical(xyz: np.ndarray, crown_base_z: float) -> bool:
+    """A pointed crown: its upper quarter is much narrower than its widest part (conifers)."""
+    crown = xyz[xyz[:, 2] >= crown_base_z]
+    if len(crown) < 20:
+        return False
+    centre = crown[:, :2].mean(axis=0)
+    r = np.linalg.norm(crown[:, :2] - centre, axis=1)
+    z0, z1 = crown[:, 2].min(), crown[:, 2].max()
+    rel = (crown[:, 2] - z0) / max(z1 - z0, 1e-6)
+    top = r[rel >= 0.75]
+    if len(top) < 3:
+        return False
+    return bool(np.percentile(top, 90) < 0.45 * np.percentile(r, 90))
+
+
+def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
+                options: ModelOptions = ModelOptions(), progress: Progress = None,
+                cancelled: CancelCheck = None) -> List[ModelledTree]:
+    """Model every tree of ``labels`` (see the module docstring), in tree_id order."""
+    local = cloud.local_xyz()
+    height = np.asarray(cloud.attrs["height"], dtype=np.float64)
+    row_of = {int(t): i for i, t in enumerate(metrics.tree_id)}
+    ids, groups = _groups(np.asarray(labels))
+    out = []
+    for k, (tree_id, idx) in enumerate(zip(ids, groups)):
+        check(cancelled)
+        report(progress, k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
+        i = row_of[int(tree_id)]
+        xyz = local[idx]
+        ground_z = float(np.median(xyz[:, 2] - height[idx]))
+        rec = reconstruct_tree(TreePoints(int(tree_id), xyz, ground_z), options.method)
+        tree_h, crown_d = float(metrics.height[i]), float(metrics.crown_diameter[i])
+        dbh, source = estimate_dbh(xyz, height[idx], tree_h, crown_d)
+        skeleton = simplify_skeleton(rec.skeleton, options.simplify_m) if options.simplify_m > 0 else rec.skeleton
+        stem_r = max(dbh, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
+        radii = pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2),
+                                 trunk_radius_m=stem_r)
+        skeleton = with_radii(skeleton, radii)
+        base = skeleton.nodes[skeleton.root].copy()
+        shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
+        wood = tree_mesh(shifted, lod=options.lod)
+        leaves = None
+        kind = options.leaves
+        if kind == "auto":
+            kind = "needles" if is_conical(xyz, ground_z + metrics.crown_base_height[i]) else "broadleaf"
+        seed = zlib.crc32(f"leaves-{int(tree_id)}".encode())
+        # Coarse levels of detail: fewer, larger cards keep the crown's look at a fraction of the faces.
+        scale = {0: 3.0, 1: 1.5}.get(options.lod, 1.0)
+        if kind == "needles":
+            leaves = grow_leaves(shifted, NeedleClusters(clusters_per_tip=max(2, int(8 / scale)),
+                                                         cluster_length_m=0.3 * scale), seed=seed)
+        elif kind == "broadleaf":
+            leaves = grow_leaves(shifted, LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
+                                                    leaf_length_m=0.1 * scale), seed=seed)
+        noise = len(idx) < options.min_points
+        quality = "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok")
+        record = {
+            "tree_id": int(tree_id),
+            "base_x": 0.0, "base_y": 0.0, "base_z": 0.0,  # filled in CRS units below
+            "dbh": float(dbh), "dbh_source": source,
+            "n_branches": int(branch_count(skeleton)),
+            "total_branch_length": float(total_branch_length(skeleton)),
+            "wood_volume": float(wood_volume(skeleton)),
+            "method": rec.method,
+            "visited_fraction": float(rec.visited_fraction),
+            "quality": quality,
+            "leaves": kind,
+            "flags": ",".join(rec.flags),
+        }
+        crs_base = cloud.from_local(base[None, :])[0]
+        record.update(base_x=float(crs_base[0]), base_y=float(crs_base[1]), base_z=float(crs_base[2]))
+        out.append(ModelledTree(int(tree_id), base, skeleton, wood, leaves, record))
+    report(progress, 1.0, "trees modelled")
+    return out
