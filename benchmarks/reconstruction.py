@@ -1,6 +1,8 @@
-"""Speed and quality of tree-skeleton reconstruction (Hu et al. 2017 greedy skeleton).
+"""Speed and quality of tree reconstruction: greedy skeleton (Hu et al. 2017), guided growth
+(Guo et al. 2018) and the hybrid of Hu §6.2, side by side; then whole models against truth.
 
     python benchmarks/reconstruction.py [--seed 1] [--size 100] [--k 16] [--per-tree]
+                                        [--methods greedy,guided,hybrid]
 
 Data sets, each tree reconstructed from its own points with
 ``reconstruct_tree(TreePoints(...), GreedySkeleton(...))``:
@@ -32,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sylva.core.reconstruct import GreedySkeleton, TreePoints, reconstruct_tree
+from sylva.core.reconstruct import GreedySkeleton, GuidedGrowth, Hybrid, TreePoints, reconstruct_tree
 
 HERE = Path(__file__).resolve()
 
@@ -128,6 +130,65 @@ def synthetic(density, seed, size):
     return trees, bases, species
 
 
+def sample_tile():
+    """The bundled sample (resources/sample): its own truth segmentation and terrain."""
+    import laspy
+
+    from sylva.core.synth import read_truth
+
+    las = laspy.read(str(HERE.parents[1] / "resources" / "sample" / "sample.laz"))
+    truth = {t.tree_id: t for t in read_truth(HERE.parents[1] / "resources" / "sample" / "sample_trees.csv")}
+    xyz = np.c_[np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]
+    origin = np.array([xyz[:, 0].min(), xyz[:, 1].min(), 0.0])
+    xyz -= origin
+    tid = np.where(np.asarray(las["true_kind"]) <= 2, np.asarray(las["true_tree"]), 0).astype(np.int64)
+    order = np.argsort(tid, kind="stable")
+    ids, start = np.unique(tid[order], return_index=True)
+    return [TreePoints(int(i), xyz[g], truth[int(i)].ground_z) for i, g in zip(ids, np.split(order, start[1:]))
+            if i > 0]
+
+
+def model_errors(density, seed, size):
+    """Whole models (core.forest.model_trees) of a synthetic stand against its truth."""
+    from dataclasses import replace
+
+    from sylva.core import synth
+    from sylva.core.forest import model_trees
+    from sylva.core.measure import tree_metrics
+    from sylva.core.terrain import normalize
+
+    stand_spec, scan_spec = synth.preset("medium", pulse_density=density, seed=seed)
+    stand = synth.make_stand(replace(stand_spec, width_m=size, depth_m=size))
+    scan = synth.simulate_scan(stand, scan_spec)
+    labels = np.where(scan.truth_kind <= synth.CROWN, scan.truth_tree, 0).astype(np.int64)
+    cloud = normalize(scan.cloud)
+    metrics = tree_metrics(cloud, labels)
+    t0 = time.perf_counter()
+    trees = model_trees(cloud, labels, metrics)
+    dt = time.perf_counter() - t0
+    truth = {t.tree_id: t for t in stand.trees}
+    rec = {t.tree_id: t for t in trees}
+    ids = metrics.tree_id
+    noise = np.array([rec[i].record["quality"] == "noise" for i in ids])
+    modelled = np.array([len(rec[i].wood.faces) > 0 for i in ids])
+    th = np.array([truth[i].height for i in ids])
+    tcd = np.array([2 * truth[i].crown_radius_m for i in ids])
+    tdbh = np.array([truth[i].dbh_m for i in ids])
+    dbh = np.array([rec[i].record["dbh"] for i in ids])
+    ok = ~noise
+    rel = lambda a, b: np.abs(a - b) / b  # noqa: E731
+    print(f"\n== whole models, synthetic 'medium' {size:.0f} m at {density:g} pulses/m2: {len(ids)} trees "
+          f"({noise.sum()} noise), {dt / len(ids) * 1e3:.1f} ms per tree (reconstruction + mesh + leaves)")
+    print(f"   non-noise trees with a model: {modelled[ok].mean():.1%}   methods: "
+          + ", ".join(f"{m} {sum(t.record['method'] == m for t in trees)}" for m in sorted({t.record['method'] for t in trees})))
+    print(f"   height error: median {np.median(metrics.height[ok] - th[ok]):+.2f} m, "
+          f"MAE {np.mean(np.abs(metrics.height[ok] - th[ok])):.2f} m")
+    print(f"   crown diameter error: median {np.median(metrics.crown_diameter[ok] - tcd[ok]):+.2f} m, "
+          f"median relative {np.median(rel(metrics.crown_diameter[ok], tcd[ok])):.1%}")
+    print(f"   DBH error ({', '.join(sorted({t.record['dbh_source'] for t in trees}))}): "
+          f"median {np.median(dbh[ok] - tdbh[ok]) * 100:+.1f} cm, median relative {np.median(rel(dbh[ok], tdbh[ok])):.1%}")
+
+
 def mixed_conifer():
     path = DATA / "als" / "MixedConifer.laz"
     if not path.exists():
@@ -153,33 +214,41 @@ def main(argv=None):
     ap.add_argument("--densities", default="10,20")
     ap.add_argument("--per-tree", action="store_true")
     ap.add_argument("--verbatim", action="store_true", help="Algorithm 2 verbatim (regrow_pruned=False)")
+    ap.add_argument("--methods", default="greedy,guided,hybrid")
     args = ap.parse_args(argv)
     kw = {}
     if args.k is not None:
         kw["k"] = args.k
     if args.verbatim:
         kw["regrow_pruned"] = False
-    method = GreedySkeleton(**kw)
-    print(f"method: {method}")
+    greedy = GreedySkeleton(**kw)
+    methods = {"greedy": greedy, "guided": GuidedGrowth(), "hybrid": Hybrid(primary=greedy)}
+    chosen = [m for m in args.methods.split(",") if m]
+    print("methods: " + "; ".join(f"{m} = {methods[m]}" for m in chosen))
 
     # warm-up (imports, the thinning memo) on a throwaway tree
     rng = np.random.default_rng(0)
-    reconstruct_tree(TreePoints(0, rng.random((300, 3)) * [4, 4, 10] + [0, 0, 5], 0.0), method)
+    for m in chosen:
+        reconstruct_tree(TreePoints(0, rng.random((300, 3)) * [4, 4, 10] + [0, 0, 5], 0.0), methods[m])
 
+    datasets = []
     for density in [float(d) for d in args.densities.split(",") if d]:
         t0 = time.perf_counter()
         trees, bases, species = synthetic(density, args.seed, args.size)
-        sim = time.perf_counter() - t0
-        rows = run_trees(trees, method, bases, species)
-        summarise(f"synthetic 'medium' stand {args.size:.0f} m, {density:g} pulses/m2 "
-                  f"(simulated in {sim:.1f} s)", rows, args.per_tree)
-
-    trees = mixed_conifer()
-    if trees is None:
+        datasets.append((f"synthetic 'medium' stand {args.size:.0f} m, {density:g} pulses/m2 "
+                         f"(simulated in {time.perf_counter() - t0:.1f} s)", trees, bases, species))
+    datasets.append(("bundled sample (resources/sample, truth segmentation)", sample_tile(), None, None))
+    mc = mixed_conifer()
+    if mc is None:
         print("\n== MixedConifer.laz: skipped (../shared/data/als/MixedConifer.laz not found)")
     else:
-        rows = run_trees(trees, method)
-        summarise("MixedConifer.laz (lidR treeID segmentation, ground_z = 0)", rows, args.per_tree)
+        datasets.append(("MixedConifer.laz (lidR treeID segmentation, ground_z = 0)", mc, None, None))
+    for name, trees, bases, species in datasets:
+        for m in chosen:
+            rows = run_trees(trees, methods[m], bases, species)
+            summarise(f"{name} [{m}]", rows, args.per_tree)
+    for density in [float(d) for d in args.densities.split(",") if d]:
+        model_errors(density, args.seed, args.size)
 
 
 if __name__ == "__main__":
