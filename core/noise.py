@@ -7,13 +7,19 @@ a tree of one point, so every algorithm leaves noise out:
 * points of ASPRS class 7 (low noise) and 18 (high noise), and withheld points;
 * points in an *isolated voxel neighbourhood*, as lidR's ``ivf`` does: the
   tile is cut into cubes of ``voxel_m``; a point is noise when its cube and
-  the 26 around it hold fewer than ``min_points`` points in all.
+  the 26 around it hold fewer than ``min_points`` points in all
+  (:func:`noise_mask`, applied to whole tiles by every algorithm);
+* for canopy surfaces and tree tops, also any canopy point with no other
+  within ``isolation_m`` in 3-D (:func:`isolated_points`): a single stray
+  return above the canopy is a false top even inside a populated voxel block.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .cloud import PointCloud
 
@@ -64,3 +70,22 @@ def noise_mask(cloud: PointCloud, method: IsolatedVoxels = IsolatedVoxels()) -> 
     if withheld is not None:
         mask |= np.asarray(withheld).astype(bool)
     return mask
+
+
+def isolated_points(cloud: PointCloud, isolation_m: Optional[float] = 2.0,
+                    among: Optional[np.ndarray] = None) -> np.ndarray:
+    """Classified noise (7, 18) and, when ``isolation_m`` is given, points with no other point
+    (of those selected by ``among``, default all) within ``isolation_m`` metres in 3-D."""
+    noise = np.zeros(len(cloud), dtype=bool)
+    cls = cloud.attr("classification")
+    if cls is not None:
+        noise |= np.isin(np.asarray(cls), NOISE_CLASSES)
+    if isolation_m is not None and isolation_m > 0:
+        idx = np.nonzero(~noise if among is None else (~noise & among))[0]
+        if len(idx) > 1:
+            loc = cloud.local_xyz()[idx]
+            dist, _ = cKDTree(loc).query(loc, k=2, distance_upper_bound=float(isolation_m), workers=-1)
+            noise[idx[~np.isfinite(dist[:, 1])]] = True
+        elif len(idx) == 1:
+            noise[idx] = True
+    return noise

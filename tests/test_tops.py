@@ -1,0 +1,181 @@
+"""Tree-top detection (local maxima) on points and on CHMs against known tops."""
+import numpy as np
+import pyproj
+import pytest
+
+from sylva.core.cloud import INTERNATIONAL_FOOT, PointCloud, Units
+from sylva.core.errors import Cancelled, EmptyInputError, InputError
+from sylva.core.raster import Raster
+from sylva.core.terrain import canopy_height_model
+from sylva.core.tops import FixedWindow, TreeTops, VariableWindow, find_tree_tops
+
+UTM = pyproj.CRS.from_epsg(26912)
+
+
+def crowns(tops, density=20.0, seed=0, size=40.0, ground_z=300.0):
+    """Paraboloid crowns (radius 2.5 m, depth 6 m) with known apexes, on flat ground at ground_z."""
+    rng = np.random.default_rng(seed)
+    n = int(density * size * size)
+    xy = rng.uniform(0, size, (n, 2))
+    h = np.zeros(n)
+    for x, y, top in tops:
+        r = np.hypot(xy[:, 0] - x, xy[:, 1] - y)
+        h = np.maximum(h, np.where(r < 2.5, top - 6.0 * (r / 2.5) ** 2, 0.0))
+    apex = np.asarray(tops, dtype=np.float64)
+    xy = np.vstack([xy, apex[:, :2]])
+    h = np.r_[h, apex[:, 2]]
+    xyz = np.column_stack([xy + [500_000, 4_000_000], h + ground_z])
+    cls = np.where(h == 0, 2, 1).astype(np.uint8)
+    return PointCloud(xyz, {"classification": cls, "height": h}, crs=UTM, source="crowns.laz")
+
+
+TOPS = [(8.0, 8.0, 20.0), (14.0, 9.0, 17.0), (30.0, 30.0, 25.0), (20.0, 32.0, 12.0), (33.0, 12.0, 22.5)]
+
+
+def test_points_fixed_window_finds_the_apexes():
+    cloud = crowns(TOPS)
+    tops = find_tree_tops(cloud, FixedWindow(3.0), min_height_m=2.0)
+    assert isinstance(tops, TreeTops) and len(tops) == len(TOPS)
+    expect = sorted(TOPS, key=lambda t: -t[2])
+    np.testing.assert_allclose(tops.xyz[:, :2] - [500_000, 4_000_000], np.array(expect)[:, :2])
+    np.testing.assert_allclose(tops.height, np.array(expect)[:, 2])
+    np.testing.assert_allclose(tops.xyz[:, 2], np.array(expect)[:, 2] + 300.0)  # CRS z
+    assert tops.tree_id.dtype == np.int64 and list(tops.tree_id) == [1, 2, 3, 4, 5]
+    assert tops.xyz.dtype == np.float64 and tops.height.dtype == np.float64
+
+
+def test_wide_window_merges_close_trees():
+    cloud = crowns(TOPS)
+    # trees 1 (20 m) and 2 (17 m) are 6.1 m apart: a 13 m window keeps only the taller
+    tops = find_tree_tops(cloud, FixedWindow(13.0))
+    assert 17.0 not in tops.height and 20.0 in tops.height
+
+
+def test_variable_window_diameter_rules():
+    w = VariableWindow()
+    d = w.diameter(np.array([0.0, 10.0, 30.0, 100.0]))
+    assert d[0] == w.min_diameter_m and d[-1] == w.max_diameter_m
+    assert np.all(np.diff(d) >= 0)
+    pines = VariableWindow.pines()
+    assert pines.diameter(np.array([20.0]))[0] == pytest.approx(3.75105 - 0.17919 * 20 + 0.01241 * 400)
+    assert VariableWindow.combined().diameter(np.array([10.0]))[0] == pytest.approx(2.51503 + 0.901)
+    tops = find_tree_tops(crowns(TOPS), VariableWindow())
+    assert len(tops) == len(TOPS)
+
+
+def test_chm_tops_match_point_tops():
+    cloud = crowns(TOPS)
+    chm = canopy_height_model(cloud, resolution_m=0.5, pit_free=False)
+    tops = find_tree_tops(chm, FixedWindow(3.0))
+    assert len(tops) == len(TOPS)
+    expect = np.array(sorted(TOPS, key=lambda t: -t[2]))
+    # the top lies in the cell holding the apex: within half a pixel diagonal
+    err = np.hypot(*(tops.xyz[:, :2] - [500_000, 4_000_000] - expect[:, :2]).T)
+    assert err.max() <= 0.5 * np.sqrt(2) * 0.5 + 1e-9
+    np.testing.assert_allclose(tops.height, expect[:, 2], atol=1e-4)
+    assert list(tops.tree_id) == [1, 2, 3, 4, 5]
+
+
+def test_plateau_gives_one_top():
+    # a flat-topped 4 x 4 m "crown" at 15 m on a regular grid of points
+    g = np.arange(0.0, 20.0, 0.25)
+    x, y = np.meshgrid(g, g)
+    x, y = x.ravel(), y.ravel()
+    h = np.where((np.abs(x - 10) <= 2) & (np.abs(y - 10) <= 2), 15.0, 0.0)
+    cloud = PointCloud(np.column_stack([x, y, h]), {"height": h})
+    for window in (FixedWindow(1.0), FixedWindow(3.0), VariableWindow()):
+        tops = find_tree_tops(cloud, window)
+        assert len(tops) == 1, window
+        assert tops.height[0] == 15.0
+        assert abs(tops.xyz[0, 0] - 10) <= 0.25 and abs(tops.xyz[0, 1] - 10) <= 0.25
+    chm = Raster(np.where((np.abs(np.arange(40)[:, None] - 20) < 8) & (np.abs(np.arange(40) - 20) < 8),
+                          15.0, 0.0), x0=0.0, y0=20.0, pixel=0.5)
+    for window in (FixedWindow(1.0), FixedWindow(3.0), VariableWindow()):
+        tops = find_tree_tops(chm, window)
+        assert len(tops) == 1 and tops.height[0] == 15.0
+
+
+def test_flat_and_empty_chm_give_no_tops():
+    flat = Raster(np.full((50, 60), 1.2, np.float32), x0=0.0, y0=0.0, pixel=0.5)
+    tops = find_tree_tops(flat, FixedWindow(3.0), min_height_m=2.0)
+    assert len(tops) == 0 and tops.xyz.shape == (0, 3) and tops.tree_id.dtype == np.int64
+    nodata = Raster(np.full((10, 10), np.nan, np.float32), x0=0.0, y0=0.0, pixel=0.5)
+    assert len(find_tree_tops(nodata, VariableWindow())) == 0
+    low = crowns([(10.0, 10.0, 1.5)])
+    assert len(find_tree_tops(low, min_height_m=2.0)) == 0
+
+
+def test_chm_in_feet_uses_metre_windows():
+    feet_crs = pyproj.CRS.from_epsg(2994)  # NAD83(HARN) / Oregon GIC Lambert (ft)
+    assert feet_crs.axis_info[0].unit_conversion_factor == pytest.approx(INTERNATIONAL_FOOT)
+    cloud = crowns(TOPS)
+    feet = PointCloud(cloud.xyz / INTERNATIONAL_FOOT, cloud.attrs, crs=feet_crs,
+                      units=Units(INTERNATIONAL_FOOT, INTERNATIONAL_FOOT))
+    chm = canopy_height_model(feet, resolution_m=0.5, pit_free=False)
+    assert chm.pixel == pytest.approx(0.5 / INTERNATIONAL_FOOT)
+    assert len(find_tree_tops(chm, FixedWindow(3.0))) == len(TOPS)
+    assert len(find_tree_tops(feet, FixedWindow(3.0))) == len(TOPS)
+
+
+def test_errors_and_cancel():
+    with pytest.raises(InputError, match="unknown tree-top window"):
+        find_tree_tops(crowns(TOPS), window="lmf")
+    with pytest.raises(EmptyInputError, match="empty.laz"):
+        find_tree_tops(PointCloud(np.zeros((0, 3)), source="empty.laz"))
+    with pytest.raises(Cancelled):
+        find_tree_tops(crowns(TOPS), cancelled=lambda: True)
+    # without a height attribute and without ground: the normalisation error names the file
+    bare = PointCloud(crowns(TOPS).xyz, {"classification": np.ones(len(crowns(TOPS)), np.uint8)},
+                      source="bare.laz")
+    with pytest.raises(EmptyInputError, match="bare.laz.*no ground points"):
+        find_tree_tops(bare)
+
+
+def test_deterministic():
+    cloud = crowns(TOPS, seed=3)
+    a = find_tree_tops(cloud, VariableWindow())
+    b = find_tree_tops(cloud, VariableWindow())
+    assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.tree_id, b.tree_id)
+
+
+# ---------------------------------------------------------------- synthetic stands (core.synth)
+
+def match_tops(tops_xy, tops_h, trees_xy, trees_h, crowns_r):
+    """Greedy one-to-one matching, tallest true tree first: a detected top matches when within
+    0.5 x the true crown radius and within 15 % of the true height."""
+    used = np.zeros(len(tops_xy), dtype=bool)
+    hits = 0
+    for i in np.argsort(-trees_h):
+        d = np.hypot(*(tops_xy - trees_xy[i]).T)
+        ok = ~used & (d <= 0.5 * crowns_r[i]) & (np.abs(tops_h - trees_h[i]) <= 0.15 * trees_h[i])
+        if ok.any():
+            used[np.argmin(np.where(ok, d, np.inf))] = True
+            hits += 1
+    precision = hits / max(len(tops_xy), 1)
+    recall = hits / max(len(trees_xy), 1)
+    return precision, recall, 2 * precision * recall / max(precision + recall, 1e-12)
+
+
+def test_f1_on_open_synthetic_stand():
+    synth = pytest.importorskip("sylva.core.synth")
+    from sylva.core.terrain import normalize
+
+    stand_spec, scan_spec = synth.preset("open", pulse_density=10.0, seed=0)
+    stand = synth.make_stand(stand_spec)
+    scan = synth.simulate_scan(stand, scan_spec)
+    cloud = normalize(scan.cloud)  # synth classifies ground (class 2); noise stays class 1
+    trees = stand.trees
+    xy = np.array([[t.x, t.y] for t in trees])
+    h = np.array([t.height for t in trees])
+    r = np.array([t.crown_radius_m for t in trees])
+    # measured (seed 0, 120 trees): F1 0.949 FixedWindow(3 m) and 0.956 VariableWindow() on the
+    # points, 0.964 VariableWindow() on the pit-free CHM (recall 1.00, precision 0.90-0.93)
+    for source, window in ((cloud, FixedWindow()), (cloud, VariableWindow()),
+                           (canopy_height_model(cloud, resolution_m=0.5), VariableWindow())):
+        tops = find_tree_tops(source, window)
+        p, rc, f1 = match_tops(tops.xyz[:, :2], tops.height, xy, h, r)
+        assert f1 > 0.9, (window, p, rc, f1)
+    # the tops' z is the elevation of the top in the CRS (ground + height)
+    tops = find_tree_tops(cloud, VariableWindow())
+    ground = stand.ground_z(tops.xyz[:, 0], tops.xyz[:, 1])
+    np.testing.assert_allclose(tops.xyz[:, 2] - ground, tops.height, atol=0.15)
