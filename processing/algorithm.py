@@ -9,6 +9,8 @@ temporary layers and Graphical Modeler links alike.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 from qgis.core import (
     QgsCoordinateReferenceSystem,
     QgsFeature,
@@ -19,6 +21,7 @@ from qgis.core import (
     QgsProcessing,
     QgsProcessingAlgorithm,
     QgsProcessingException,
+    QgsProcessingLayerPostProcessorInterface,
     QgsProcessingParameterBoolean,
     QgsProcessingParameterCrs,
     QgsProcessingParameterDefinition,
@@ -38,6 +41,9 @@ from ..algorithms import spec as S
 from ..core.errors import SylvaError
 from ..plugin import deps
 
+#: The .qml styles that Param.style names.
+STYLES = Path(__file__).resolve().parents[1] / "resources" / "styles"
+
 _SINK_TYPES = {S.POINT: QgsProcessing.TypeVectorPoint, S.LINE: QgsProcessing.TypeVectorLine,
                S.POLYGON: QgsProcessing.TypeVectorPolygon, S.NO_GEOMETRY: QgsProcessing.TypeVector}
 _WKB = {("line", "zm"): QgsWkbTypes.MultiLineStringZM,
@@ -51,9 +57,12 @@ _QVARIANT = {"integer": QVariant.LongLong, "real": QVariant.Double, "text": QVar
 class QgisFeedback(S.Feedback):
     def __init__(self, feedback):
         self.feedback = feedback
+        self._step = -1
 
     def progress(self, fraction, message=""):
-        if message:
+        step = int(fraction * 20)  # a progress text every 5 % at most: logs stay readable
+        if message and step != self._step:
+            self._step = step
             self.feedback.setProgressText(message)
         self.feedback.setProgress(100.0 * fraction)
 
@@ -188,6 +197,7 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
             _WKB[(table.geometry_type, "zm" if table.has_m else table.has_z)], to_qgs_crs(table.crs))
         if sink is None:
             return None
+        self._style_on_load(self.spec.param(name).style, dest_id, context)
         import shapely
 
         from ..core.table import python_values
@@ -210,6 +220,37 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
             feature.setAttributes([col[i] for col in columns])
             sink.addFeature(feature, QgsFeatureSink.FastInsert)
         return dest_id
+
+    @staticmethod
+    def _style_on_load(style, dest_id, context):
+        """Have QGIS apply ``resources/styles/<style>`` when it loads the output at the end of the run."""
+        if style and context.willLoadLayerOnCompletion(dest_id):
+            context.layerToLoadOnCompletionDetails(dest_id).setPostProcessor(StyleOnLoad.get(style))
+
+
+class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):
+    """Loads a .qml of resources/styles into a layer Processing has just loaded (QGIS >= 3.2).
+
+    QGIS does not own post-processors: one instance per style lives in ``_instances`` for good.
+    """
+
+    _instances: dict = {}
+
+    def __init__(self, qml: str):
+        super().__init__()
+        self.qml = qml
+
+    @classmethod
+    def get(cls, style: str) -> "StyleOnLoad":
+        if style not in cls._instances:
+            cls._instances[style] = cls(str(STYLES / style))
+        return cls._instances[style]
+
+    def postProcessLayer(self, layer, context, feedback):  # noqa: N802
+        message, ok = layer.loadNamedStyle(self.qml)
+        if not ok and feedback is not None:
+            feedback.reportError(f"style {self.qml} not applied: {message}", fatalError=False)
+        layer.triggerRepaint()
 
 
 def _as_multi(geometry, geometry_type):

@@ -16,9 +16,13 @@ run sylva:treetops --INPUT="$sample" --WINDOW=0 --WINDOW_DIAMETER_M=3 --MIN_HEIG
 run sylva:segmenttrees --INPUT="$sample" --METHOD=0 --OUTPUT="$out/segmented.laz" \
     --TREE_TOPS="$out/seg_tree_tops.gpkg" --CROWNS="$out/crowns.gpkg" --CROWN_POINTS="$out/crown_points.gpkg" \
     --STEM_POINTS="$out/stem_points.gpkg" --TREES="$out/trees.gpkg"
+run sylva:reconstructtrees --INPUT="$out/segmented.laz" --METHOD=0 --LOD=0 --MODELS="$out/trees.glb" \
+    --SKELETONS="$out/skeletons.gpkg" --TREES="$out/trees_models.gpkg"
 echo
 echo "Outputs are in $out:"
 echo "  chm.tif            canopy height model (m above ground)"
 echo "  tree_tops.gpkg     local-maximum tree tops"
 echo "  segmented.laz      the sample tile with a treeID per point (normalised cut, Hu et al. 2017)"
 echo "  crowns.gpkg, crown_points.gpkg, stem_points.gpkg, seg_tree_tops.gpkg, trees.gpkg"
+echo "  trees.glb          a georeferenced 3D model of every tree (Hu et al. 2017 / Guo et al. 2018)"
+echo "  skeletons.gpkg     branch skeletons (radius as M), trees_models.gpkg: the trees table with DBH, volume..."
