@@ -1,0 +1,192 @@
+"""Individual-tree segmentation: one verb, one module per method.
+
+    labels = segment_trees(cloud, NormalizedCut())          # Hu et al. 2017, §4.1
+    labels = segment_trees(cloud, ChmRegionGrowing())       # Dalponte & Coomes 2016
+
+:func:`segment_trees` returns one ``int32`` tree ID per point (0 = ground,
+noise or unassigned), as lidR's ``segment_trees`` writes ``treeID``.  The IDs
+are the ``tree_id`` values of the tree tops the method was guided by, so a
+tree's top (:class:`sylva.core.tops.TreeTops`) and its points share one ID.
+
+A method is a frozen dataclass of its parameters with a
+``segment(cloud, tops, progress, cancelled) -> int32 array`` method;
+:func:`segment_trees` only validates the input and dispatches, so adding a
+method adds a module, not a branch.
+
+Rules every method follows (shared helpers below):
+
+* ``cloud`` must be height-normalised (attribute ``height``, metres above
+  ground); if it is not, :func:`sylva.core.terrain.normalize` is called.
+* Points with NaN/infinite coordinates raise :class:`InputError` naming the
+  file; duplicated points are fine.
+* Ground points (class 2, or ``height < ground_tolerance_m``) are 0.
+* Points below ``min_height_m`` are not crown: they are labelled only when
+  they stand in the *column* of a labelled crown, i.e. directly below the
+  crown's lowest labelled voxel/cell in the same horizontal cell (stems and
+  lower branches under a crown belong to its tree).  A low point in a gap
+  between crowns stays 0, so isolated shrubs and low noise are not swallowed.
+  (A shrub or low noise point right under a crown does get that tree's ID: from
+  the air it cannot be told from the stem.)
+* Isolated points (noise) stay 0: a crown point must be connected to a tree top
+  through the method's neighbourhood structure (or stand in a labelled crown's
+  column, as above), and nothing of a tree is higher than its top.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import numpy as np
+
+from ..cloud import PointCloud
+from ..errors import InputError
+from ..progress import CancelCheck, Progress, report
+
+__all__ = ["segment_trees", "NormalizedCut", "ChmRegionGrowing", "LocalTops"]
+
+#: Points lower than this (metres above ground) are ground, never tree points.
+GROUND_TOLERANCE_M = 0.5
+
+
+# --------------------------------------------------------------------------- shared helpers
+
+def validate_cloud(cloud: PointCloud) -> PointCloud:
+    """Reject NaN/infinite coordinates (naming the file); normalise when needed."""
+    if not isinstance(cloud, PointCloud):
+        raise InputError(f"segment_trees expects a PointCloud, got {type(cloud).__name__}")
+    finite = np.isfinite(cloud.xyz).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(
+            f"{cloud.name}: {len(bad)} point(s) have NaN or infinite coordinates "
+            f"(first at point index {bad[0]}); remove them before segmenting trees")
+    if len(cloud) == 0:
+        return cloud
+    if cloud.attr("height") is None:
+        from ..terrain import normalize
+
+        cloud = normalize(cloud)
+    height = np.asarray(cloud.attr("height"), dtype=np.float64)
+    if not np.isfinite(height).all():
+        bad = np.flatnonzero(~np.isfinite(height))
+        raise InputError(
+            f"{cloud.name}: {len(bad)} point(s) have no height above ground (NaN; first at "
+            f"point index {bad[0]}); normalise the tile again")
+    return cloud
+
+
+@dataclass(frozen=True)
+class LocalTops:
+    """Tree tops in a cloud's local metric frame (see :meth:`PointCloud.local_xyz`).
+
+    ``xy`` (k, 2) metres, ``height`` (k,) metres above ground, ``tree_id`` (k,) int64.
+    """
+
+    xy: np.ndarray
+    height: np.ndarray
+    tree_id: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.tree_id)
+
+
+def resolve_tops(cloud: PointCloud, tops, min_height_m: float, window_m: float,
+                 progress: Progress = None, cancelled: CancelCheck = None) -> LocalTops:
+    """The tops to segment from, in the local frame; found with find_tree_tops if None.
+
+    The default window is a 3 m fixed circular window (lidR's ``lmf(ws = 3)``
+    is the common choice for conifer ALS at this scale).
+    """
+    if tops is None:
+        from ..tops import FixedWindow, find_tree_tops
+
+        tops = find_tree_tops(cloud, window=FixedWindow(diameter_m=window_m),
+                              min_height_m=min_height_m, progress=progress,
+                              cancelled=cancelled)
+    xyz = np.asarray(tops.xyz, dtype=np.float64).reshape(-1, 3)
+    tree_id = np.asarray(tops.tree_id, dtype=np.int64).reshape(-1)
+    height = np.asarray(tops.height, dtype=np.float64).reshape(-1)
+    if not (len(xyz) == len(tree_id) == len(height)):
+        raise InputError("tree tops: xyz, height and tree_id have different lengths")
+    ok = np.isfinite(xyz[:, :2]).all(axis=1) & np.isfinite(height) & (tree_id > 0)
+    if len(np.unique(tree_id[ok])) != ok.sum():
+        raise InputError("tree tops: tree_id values must be unique and positive")
+    if tree_id.max(initial=0) > np.iinfo(np.int32).max:
+        raise InputError("tree tops: tree_id values do not fit the int32 treeID dimension")
+    xyz, tree_id, height = xyz[ok], tree_id[ok], height[ok]
+    origin = cloud.origin
+    scale = cloud.units.horizontal_m
+    xy = (xyz[:, :2] - origin[:2]) * scale
+    return LocalTops(xy=xy, height=height, tree_id=tree_id)
+
+
+def ground_mask(cloud: PointCloud, height: np.ndarray) -> np.ndarray:
+    """Ground points: class 2 when classified, and anything below GROUND_TOLERANCE_M."""
+    ground = height < GROUND_TOLERANCE_M
+    cls = cloud.attr("classification")
+    if cls is not None:
+        ground |= np.asarray(cls) == 2
+    return ground
+
+
+def label_columns_below(col_key_labelled: np.ndarray, z_labelled: np.ndarray,
+                        label_labelled: np.ndarray, col_key_query: np.ndarray,
+                        z_query: np.ndarray) -> np.ndarray:
+    """Label of the lowest labelled cell in the same column *above* each query point.
+
+    Used for stems and low branches: a point below ``min_height_m`` takes the
+    label of the crown right above it (same horizontal cell), 0 when there is
+    none.  Vectorised with a sort and ``searchsorted``.
+    """
+    out = np.zeros(len(col_key_query), dtype=np.int32)
+    if len(col_key_labelled) == 0 or len(col_key_query) == 0:
+        return out
+    order = np.lexsort((z_labelled, col_key_labelled))
+    keys = col_key_labelled[order]
+    first = np.ones(len(keys), dtype=bool)
+    first[1:] = keys[1:] != keys[:-1]
+    ukeys = keys[first]
+    ulab = label_labelled[order][first]
+    uz = z_labelled[order][first]
+    pos = np.searchsorted(ukeys, col_key_query)
+    pos = np.minimum(pos, len(ukeys) - 1)
+    hit = (ukeys[pos] == col_key_query) & (uz[pos] >= z_query)
+    out[hit] = ulab[pos[hit]]
+    return out
+
+
+def column_keys(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    """One int64 key per horizontal cell (ix, iy >= 0)."""
+    return ix.astype(np.int64) * np.int64(1 << 31) + iy.astype(np.int64)
+
+
+# --------------------------------------------------------------------------- the verb
+
+from .chm import ChmRegionGrowing  # noqa: E402  (methods use the helpers above)
+from .ncut import NormalizedCut  # noqa: E402
+
+
+def segment_trees(cloud: PointCloud, method=NormalizedCut(), tops=None,
+                  progress: Progress = None, cancelled: CancelCheck = None) -> np.ndarray:
+    """Per-point tree IDs (``int32``, 0 = ground, noise or unassigned).
+
+    ``cloud``: a :class:`PointCloud`, height-normalised (attribute ``height``
+    in metres) or not (then :func:`sylva.core.terrain.normalize` is called).
+    ``method``: a segmentation method value, e.g. :class:`NormalizedCut`
+    (default, Hu et al. 2017 §4.1) or :class:`ChmRegionGrowing`.
+    ``tops``: :class:`sylva.core.tops.TreeTops` to guide the segmentation; when
+    None the method finds them with :func:`sylva.core.tops.find_tree_tops`.
+    The output IDs are the tops' ``tree_id`` values.
+    ``progress(fraction, message)`` / ``cancelled()``: the usual callbacks;
+    :class:`sylva.core.errors.Cancelled` is raised when cancelled.
+    """
+    if not hasattr(method, "segment"):
+        raise InputError(f"{method!r} is not a tree segmentation method")
+    cloud = validate_cloud(cloud)
+    if len(cloud) == 0:
+        return np.zeros(0, dtype=np.int32)
+    labels = method.segment(cloud, tops, progress, cancelled)
+    labels = np.asarray(labels, dtype=np.int32)
+    if labels.shape != (len(cloud),):
+        raise AssertionError(f"{type(method).__name__} returned {labels.shape} labels "
+                             f"for {len(cloud)} points")
+    report(progress, 1.0, "tree segmentation done")
+    return labels
