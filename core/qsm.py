@@ -1,0 +1,398 @@
+"""Quantitative structure models (QSM): cylinder and branch tables and tree measurements.
+
+The output follows TreeQSM (Raumonen et al. 2013, Remote Sens. 5, 491–520):
+a tree is a list of cylinders, each with its parent cylinder, its branch
+and branch order, start point, unit axis, length and radius; branches are
+runs of cylinders; per tree a DBH, height, trunk and total wood volume and
+branch counts by order.  Sylva builds the cylinders from the sampled
+B-spline centre lines of Yan et al. 2009 §4 (:mod:`.reconstruct.kmeans`),
+but :func:`cylinders_from_curves` takes any list of centre lines + radii.
+
+DBH (:func:`measure_qsm`): the points within ``band_m`` of 1.3 m above the
+stem base and within 2 stem radii (+5 cm) of the stem axis there are fitted
+with a circle (:func:`sylva.core.measure.fit_stem_circle`; up to three
+passes dropping points more than 2 RMS, at least 1 cm, off it) under the
+:class:`~sylva.core.measure.DbhRule` acceptance tests; ``dbh_source`` is then
+``"measured"``, else the stem cylinder's diameter at 1.3 m is used
+(``"cylinder"``).  Volumes are sums of ``π r² L``.
+
+Tables are :class:`~sylva.core.table.VectorTable` (cylinders as 3-D lines
+from start to end, or without geometry) and CSV files written atomically.
+"""
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .atomic import atomic_open
+from .errors import InputError
+from .measure import DbhRule, fit_stem_circle
+from .table import VectorTable
+
+__all__ = ["QSM", "cylinders_from_curves", "branch_table_arrays", "measure_qsm",
+           "cylinders_table", "branches_table", "trees_table", "write_cylinders_csv",
+           "write_branches_csv", "write_trees_csv", "CYLINDER_FIELDS", "BRANCH_FIELDS"]
+
+CYLINDER_FIELDS = ("id", "parent", "branch", "order", "start_x", "start_y", "start_z",
+                   "axis_x", "axis_y", "axis_z", "length", "radius")
+BRANCH_FIELDS = ("id", "parent", "order", "n_cylinders", "length", "base_diameter", "volume",
+                 "angle_deg", "base_height")
+
+
+def cylinders_from_curves(curves: Sequence[np.ndarray], radii: Sequence[np.ndarray],
+                          branch_parent: Sequence[int], branch_order: Optional[Sequence[int]] = None) -> dict:
+    """A TreeQSM-like cylinder table from one sampled centre line + radii per branch.
+
+    Consecutive samples of branch ``b`` become cylinders of branch ``b`` (radius
+    the mean of the two end radii); a cylinder's parent is the previous
+    cylinder of its branch, and the first cylinder of a branch has as parent
+    the cylinder of its parent branch nearest its start (-1 for the trunk).
+    ``branch_order`` defaults to the depth of the branch in ``branch_parent``.
+    Returns a dict of arrays keyed by :data:`CYLINDER_FIELDS` names plus
+    ``start`` (n, 3) and ``axis`` (n, 3).
+    """
+    bp = np.asarray(branch_parent, dtype=np.int64).reshape(-1)
+    nb = len(curves)
+    if branch_order is None:
+        order = np.zeros(nb, dtype=np.int64)
+        for b in range(nb):
+            if bp[b] >= 0:
+                order[b] = order[bp[b]] + 1
+    else:
+        order = np.asarray(branch_order, dtype=np.int64)
+    starts, axes, lens, rads, bids, pars = [], [], [], [], [], []
+    first_of = np.full(nb, -1, dtype=np.int64)
+    offset = 0
+    for b, (pts, r) in enumerate(zip(curves, radii)):
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        r = np.asarray(r, dtype=np.float64).reshape(-1)
+        if len(pts) < 2:
+            continue
+        vec = np.diff(pts, axis=0)
+        L = np.linalg.norm(vec, axis=1)
+        ok = L > 1e-9
+        if not ok.any():
+            continue
+        s, v, L = pts[:-1][ok], vec[ok], L[ok]
+        rr = ((r[:-1] + r[1:]) / 2)[ok]
+        m = len(L)
+        par = offset + np.arange(m) - 1
+        if bp[b] >= 0 and first_of[bp[b]] >= 0:
+            pidx = np.flatnonzero(np.concatenate(bids) == bp[b]) if bids else np.zeros(0, dtype=np.int64)
+            allstart = np.concatenate(starts)
+            allend = allstart + np.concatenate(axes) * np.concatenate(lens)[:, None]
+            mid = (allstart[pidx] + allend[pidx]) / 2
+            par[0] = pidx[int(np.argmin(np.linalg.norm(mid - s[0], axis=1)))]
+        else:
+            par[0] = -1
+        first_of[b] = offset
+        starts.append(s)
+        axes.append(v / L[:, None])
+        lens.append(L)
+        rads.append(rr)
+        bids.append(np.full(m, b, dtype=np.int64))
+        pars.append(par)
+        offset += m
+    if not starts:
+        z3 = np.zeros((0, 3))
+        zi = np.zeros(0, dtype=np.int64)
+        zf = np.zeros(0)
+        return dict(id=zi, parent=zi, branch=zi, order=zi, start=z3, axis=z3, length=zf, radius=zf)
+    start = np.concatenate(starts)
+    branch = np.concatenate(bids)
+    return dict(id=np.arange(len(start), dtype=np.int64), parent=np.concatenate(pars).astype(np.int64),
+                branch=branch, order=order[branch], start=start, axis=np.concatenate(axes),
+                length=np.concatenate(lens), radius=np.concatenate(rads))
+
+
+def branch_table_arrays(cyl: dict, branch_parent: Sequence[int]) -> dict:
+    """Per-branch columns from a cylinder table (see :data:`BRANCH_FIELDS`).
+
+    ``base_diameter`` twice the radius of the branch's first cylinder;
+    ``angle_deg`` between the first cylinder and its parent cylinder (0 for
+    the trunk); ``base_height`` z of the branch start.
+    """
+    bp = np.asarray(branch_parent, dtype=np.int64).reshape(-1)
+    nb = len(bp)
+    br = cyl["branch"]
+    ncyl = np.bincount(br, minlength=nb)
+    length = np.bincount(br, weights=cyl["length"], minlength=nb)
+    vol = np.bincount(br, weights=np.pi * cyl["radius"] ** 2 * cyl["length"], minlength=nb)
+    first = np.full(nb, -1, dtype=np.int64)
+    if len(br):
+        idx = np.arange(len(br))[::-1]
+        first[br[idx]] = idx              # smallest index wins (written last)
+    has = first >= 0
+    base_d = np.zeros(nb)
+    base_d[has] = 2 * cyl["radius"][first[has]]
+    base_h = np.full(nb, np.nan)
+    base_h[has] = cyl["start"][first[has], 2]
+    angle = np.zeros(nb)
+    for b in np.flatnonzero(has):
+        p = cyl["parent"][first[b]]
+        if p >= 0:
+            c = float(np.clip(cyl["axis"][first[b]] @ cyl["axis"][p], -1, 1))
+            angle[b] = np.degrees(np.arccos(c))
+    order = np.zeros(nb, dtype=np.int64)
+    for b in range(nb):
+        if bp[b] >= 0:
+            order[b] = order[bp[b]] + 1
+    return dict(id=np.arange(nb, dtype=np.int64), parent=bp, order=order, n_cylinders=ncyl.astype(np.int64),
+                length=length, base_diameter=base_d, volume=vol, angle_deg=angle, base_height=base_h)
+
+
+@dataclass
+class QSM:
+    """A TreeQSM-like model of one tree.
+
+    ``cylinders`` dict of arrays (:data:`CYLINDER_FIELDS`, plus ``start`` /
+    ``axis`` (n, 3)); ``branches`` dict of arrays (:data:`BRANCH_FIELDS`);
+    tree measurements: ``dbh_m`` and ``dbh_source`` (``"measured"`` circle
+    fit / ``"cylinder"`` stem cylinder), ``height_m`` (top of points or model
+    above the stem base), ``base_z``, ``trunk_volume_m3``, ``total_volume_m3``,
+    ``branch_counts`` {order: count} (order >= 1).
+    """
+
+    tree_id: int
+    cylinders: dict
+    branches: dict
+    dbh_m: float
+    dbh_source: str
+    height_m: float
+    base_z: float
+    trunk_volume_m3: float
+    total_volume_m3: float
+    branch_counts: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        out = dict(tree_id=self.tree_id, dbh_m=self.dbh_m, dbh_source=self.dbh_source, height_m=self.height_m,
+                   trunk_volume_m3=self.trunk_volume_m3, total_volume_m3=self.total_volume_m3,
+                   n_cylinders=int(len(self.cylinders["id"])), n_branches=int(len(self.branches["id"])))
+        for o, c in sorted(self.branch_counts.items()):
+            out[f"branches_order{o}"] = int(c)
+        return out
+
+
+def _stem_at(cyl: dict, z: float):
+    """Trunk (branch 0) cylinder spanning height z (nearest in z if none spans it)."""
+    stem = np.flatnonzero(cyl["branch"] == 0)
+    if len(stem) == 0:
+        return None
+    s = cyl["start"][stem]
+    e = s + cyl["axis"][stem] * cyl["length"][stem, None]
+    lo, hi = np.minimum(s[:, 2], e[:, 2]), np.maximum(s[:, 2], e[:, 2])
+    gap = np.maximum(lo - z, 0) + np.maximum(z - hi, 0)
+    i = stem[int(np.argmin(gap))]
+    return i
+
+
+def measure_qsm(cyl: dict, branch_parent: Sequence[int], xyz: Optional[np.ndarray] = None,
+                base_z: Optional[float] = None, tree_id: int = -1, rule: DbhRule = DbhRule()) -> QSM:
+    """Tree measurements of a cylinder model (TreeQSM's treedata), see the module docstring.
+
+    ``xyz`` the tree's points (metres, z up) for the measured DBH and height;
+    ``base_z`` the stem base height (default: lowest point of the stem
+    cylinders or of the points).
+    """
+    if not isinstance(cyl, dict) or "radius" not in cyl:
+        raise InputError(f"tree {tree_id}: measure_qsm needs a cylinder table (dict of arrays)")
+    br = branch_table_arrays(cyl, branch_parent)
+    n = len(cyl["radius"])
+    vol = np.pi * cyl["radius"] ** 2 * cyl["length"]
+    stem = cyl["branch"] == 0
+    ends = cyl["start"] + cyl["axis"] * cyl["length"][:, None] if n else np.zeros((0, 3))
+    zs = [cyl["start"][stem, 2], ends[stem, 2]] if n else []
+    if base_z is None:
+        cand = [np.min(z) for z in zs if len(z)]
+        if xyz is not None and len(xyz):
+            cand.append(float(np.min(xyz[:, 2])))
+        base_z = float(min(cand)) if cand else 0.0
+    top = [float(ends[:, 2].max()), float(cyl["start"][:, 2].max())] if n else []
+    if xyz is not None and len(xyz):
+        top.append(float(np.max(xyz[:, 2])))
+    height = (max(top) - base_z) if top else 0.0
+    dbh, source = float("nan"), "none"
+    zb = base_z + rule.breast_height_m
+    i = _stem_at(cyl, zb) if n else None
+    if i is not None:
+        r_cyl = float(cyl["radius"][i])
+        dbh, source = 2 * r_cyl, "cylinder"
+        if xyz is not None and len(xyz):
+            a = cyl["axis"][i]
+            s = cyl["start"][i]
+            t = (zb - s[2]) / a[2] if abs(a[2]) > 1e-6 else 0.0
+            c = s + a * t
+            band = np.abs(xyz[:, 2] - zb) <= rule.band_m
+            near = band & (np.linalg.norm(xyz[:, :2] - c[:2], axis=1) <= 2 * r_cyl + 0.05)
+            if near.sum() >= rule.min_points:
+                xy = xyz[near, :2]
+                circ = fit_stem_circle(xy)
+                for _ in range(3):      # trim twigs and noise: points off the circle by > 2 rms (>= 1 cm)
+                    if circ is None:
+                        break
+                    off = np.abs(np.hypot(xy[:, 0] - circ.x, xy[:, 1] - circ.y) - circ.radius)
+                    keep = off <= max(2.0 * circ.rms, 0.01)
+                    if keep.all() or keep.sum() < rule.min_points:
+                        break
+                    xy = xy[keep]
+                    circ = fit_stem_circle(xy)
+                if (circ is not None and circ.arc_deg >= rule.min_arc_deg and circ.rms <= rule.max_rms_m
+                        and 0.01 <= circ.radius <= rule.max_radius_m):
+                    dbh, source = 2 * circ.radius, "measured"
+    orders, counts = np.unique(br["order"][br["order"] >= 1], return_counts=True)
+    return QSM(tree_id, cyl, br, float(dbh), source, float(height), float(base_z),
+               float(vol[stem].sum()) if n else 0.0, float(vol.sum()) if n else 0.0,
+               {int(o): int(c) for o, c in zip(orders, counts)})
+
+
+# --------------------------------------------------------------------------- tables
+
+def _cyl_columns(q: QSM) -> dict:
+    c = q.cylinders
+    n = len(c["id"])
+    return {"tree_id": np.full(n, q.tree_id, dtype=np.int64), "id": c["id"], "parent": c["parent"],
+            "branch": c["branch"], "order": c["order"],
+            "start_x": c["start"][:, 0], "start_y": c["start"][:, 1], "start_z": c["start"][:, 2],
+            "axis_x": c["axis"][:, 0], "axis_y": c["axis"][:, 1], "axis_z": c["axis"][:, 2],
+            "length": c["length"], "radius": c["radius"]}
+
+
+def cylinders_table(qsms, crs=None, geometry: bool = True, origin=(0.0, 0.0, 0.0)) -> VectorTable:
+    """Cylinders of one or more QSMs as a VectorTable: 3-D lines start -> end (``geometry``)
+    or a no-geometry table.  ``origin`` is added to the local coordinates of the lines."""
+    from shapely import linestrings
+    qs = [qsms] if isinstance(qsms, QSM) else list(qsms)
+    cols = [_cyl_columns(q) for q in qs]
+    names = cols[0].keys() if cols else _cyl_columns(QSM(-1, cylinders_from_curves([], [], []),
+                                                         branch_table_arrays(cylinders_from_curves([], [], []), []),
+                                                         0, "none", 0, 0, 0, 0)).keys()
+    merged = {k: np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in names}
+    if not geometry:
+        return VectorTable("cylinders", "none", None, merged, crs)
+    o = np.asarray(origin, dtype=float)
+    s = np.stack([merged["start_x"], merged["start_y"], merged["start_z"]], axis=1).reshape(-1, 3) + o
+    a = np.stack([merged["axis_x"], merged["axis_y"], merged["axis_z"]], axis=1).reshape(-1, 3)
+    e = s + a * np.asarray(merged["length"]).reshape(-1, 1)
+    geoms = linestrings(np.stack([s, e], axis=1)) if len(s) else np.zeros(0, dtype=object)
+    return VectorTable("cylinders", "line", np.asarray(geoms, dtype=object), merged, crs)
+
+
+def branches_table(qsms, crs=None) -> VectorTable:
+    """Branches of one or more QSMs as a no-geometry VectorTable (:data:`BRANCH_FIELDS` + tree_id)."""
+    qs = [qsms] if isinstance(qsms, QSM) else list(qsms)
+    cols = []
+    for q in qs:
+        b = dict(q.branches)
+        cols.append({"tree_id": np.full(len(b["id"]), q.tree_id, dtype=np.int64), **b})
+    keys = ("tree_id",) + BRANCH_FIELDS
+    merged = {k: np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in keys}
+    return VectorTable("branches", "none", None, merged, crs)
+
+
+def trees_table(qsms, crs=None) -> VectorTable:
+    """One row per QSM with the tree measurements (no geometry)."""
+    qs = [qsms] if isinstance(qsms, QSM) else list(qsms)
+    max_o = max([max(q.branch_counts, default=0) for q in qs], default=0)
+    cols = {
+        "tree_id": np.array([q.tree_id for q in qs], dtype=np.int64),
+        "dbh_m": np.array([q.dbh_m for q in qs], dtype=float),
+        "dbh_source": np.array([q.dbh_source for q in qs], dtype=object),
+        "height_m": np.array([q.height_m for q in qs], dtype=float),
+        "trunk_volume_m3": np.array([q.trunk_volume_m3 for q in qs], dtype=float),
+        "total_volume_m3": np.array([q.total_volume_m3 for q in qs], dtype=float),
+        "n_cylinders": np.array([len(q.cylinders["id"]) for q in qs], dtype=np.int64),
+    }
+    for o in range(1, max_o + 1):
+        cols[f"branches_order{o}"] = np.array([q.branch_counts.get(o, 0) for q in qs], dtype=np.int64)
+    return VectorTable("trees", "none", None, cols, crs)
+
+
+def _write_csv(path, table: VectorTable) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    names = list(table.columns)
+    w.writerow(names)
+    kinds = table.field_types()
+    cols = [np.asarray(table.columns[k]) for k in names]
+    for i in range(len(table)):
+        row = []
+        for k, c in zip(names, cols):
+            v = c[i]
+            if kinds[k] == "real":
+                row.append("" if not np.isfinite(v) else repr(float(v)))
+            elif kinds[k] == "integer":
+                row.append(int(v))
+            else:
+                row.append("" if v is None else str(v))
+        w.writerow(row)
+    with atomic_open(path, "w") as fh:
+        fh.write(buf.getvalue())
+
+
+def write_cylinders_csv(path, qsms) -> None:
+    """Cylinder table as CSV (tree_id + :data:`CYLINDER_FIELDS`), written atomically."""
+    _write_csv(path, cylinders_table(qsms, geometry=False))
+
+
+def write_branches_csv(path, qsms) -> None:
+    """Branch table as CSV (tree_id + :data:`BRANCH_FIELDS`), written atomically."""
+    _write_csv(path, branches_table(qsms))
+
+
+def write_trees_csv(path, qsms) -> None:
+    """Tree measurements as CSV, written atomically."""
+    _write_csv(path, trees_table(qsms))
+
+
+# --------------------------------------------------------------------------- synthetic truth
+
+def cylinder_tree(segments: Sequence[dict]) -> dict:
+    """A cylinder table from branch specs, for validation with known truth.
+
+    Each spec: ``{"start": (3,), "direction": (3,), "length": m, "radius": (r0, r1),
+    "parent": branch index or -1, "n": cylinders}``; a branch is ``n`` equal
+    cylinders whose radius tapers linearly from r0 to r1.
+    """
+    curves, radii, parents = [], [], []
+    for s in segments:
+        d = np.asarray(s["direction"], float)
+        d = d / np.linalg.norm(d)
+        n = int(s.get("n", 4))
+        t = np.linspace(0, s["length"], n + 1)
+        curves.append(np.asarray(s["start"], float) + t[:, None] * d)
+        r0, r1 = s["radius"]
+        rr = np.linspace(r0, r1, n + 1)
+        radii.append(rr)
+        parents.append(int(s.get("parent", -1)))
+    cyl = cylinders_from_curves(curves, radii, parents)
+    # exact per-cylinder radii: midpoint of the taper (the mean of end radii)
+    return cyl
+
+
+def sample_cylinder_surfaces(cyl: dict, spacing_m: float = 0.01, noise_m: float = 0.0, seed: int = 0,
+                             visible=None) -> np.ndarray:
+    """Points on the lateral surfaces of the cylinders, ~one per ``spacing_m``² of area,
+    with Gaussian radial noise ``noise_m``.  ``visible`` optional (3,) horizontal view
+    direction: only the half of each cylinder facing it is kept (a one-sided scan)."""
+    rng = np.random.default_rng(seed)
+    area = 2 * np.pi * cyl["radius"] * cyl["length"]
+    n_each = np.maximum(1, np.round(area / spacing_m ** 2)).astype(np.int64)
+    idx = np.repeat(np.arange(len(area)), n_each)
+    a = cyl["axis"][idx]
+    helper = np.where(np.abs(a[:, 2:3]) < 0.9, np.array([0, 0, 1.0]), np.array([1.0, 0, 0]))
+    u = np.cross(a, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(a, u)
+    th = rng.uniform(0, 2 * np.pi, len(idx))
+    t = rng.uniform(0, 1, len(idx)) * cyl["length"][idx]
+    r = cyl["radius"][idx] + rng.normal(0, noise_m, len(idx)) if noise_m > 0 else cyl["radius"][idx]
+    nrm = np.cos(th)[:, None] * u + np.sin(th)[:, None] * v
+    pts = cyl["start"][idx] + t[:, None] * a + r[:, None] * nrm
+    if visible is not None:
+        vd = np.asarray(visible, float)
+        pts = pts[(nrm @ vd) < 0]
+    return pts
