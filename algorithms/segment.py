@@ -116,19 +116,17 @@ def run_segment(args: dict, feedback: Feedback) -> Result:
     from ..core.measure import CrownBase, tree_metrics
     from ..core.segment import segment_trees
     from ..core.terrain import normalize
-    from ..core.tops import FixedWindow, VariableWindow, find_tree_tops
 
     source = load_cloud(args, feedback)
     cloud, keep = drop_noise(source, feedback)
     feedback.progress(0.02, "height above ground")
     cloud = normalize(cloud)
-    window = FixedWindow(args["WINDOW_DIAMETER_M"]) if args["WINDOW"] == "fixed" else VariableWindow()
-    feedback.progress(0.1, "tree tops")
-    tops = find_tree_tops(cloud, window=window, min_height_m=args["MIN_HEIGHT_M"], cancelled=feedback.cancelled)
-    feedback.info(f"{len(tops)} tree tops")
     cls = METHODS[args["METHOD"]]
-    method = build_method(cls, args, min_height_m=args["MIN_HEIGHT_M"])
-    labels = segment_trees(cloud, method, tops=tops, progress=scaled(feedback.progress, 0.15, 0.8),
+    fixed = {"min_height_m": args["MIN_HEIGHT_M"]}
+    if args.get("TOP_WINDOW_M"):
+        fixed["top_window_m"] = args["TOP_WINDOW_M"]
+    method = build_method(cls, args, **fixed)
+    labels = segment_trees(cloud, method, progress=scaled(feedback.progress, 0.1, 0.8),
                            cancelled=feedback.cancelled)
     feedback.progress(0.8, "measuring trees")
     m = tree_metrics(cloud, labels, hull=args["HULL"], concavity=args["CONCAVITY"],
@@ -168,7 +166,7 @@ SEGMENT_TREES = Algorithm(
     group_id="trees",
     summary=(
         "Finds every tree of a LiDAR tile and the points that belong to it. Heights are normalised, "
-        "tree tops found by a local-maximum filter, and the canopy is cut into trees either by the "
+        "noise left out, tree tops found by a local-maximum filter, and the canopy is cut into trees by the "
         "normalised cut of Hu et al. (2017, §4.1) on a voxel graph whose links weigh horizontal and "
         "vertical distance, intensity and colour (METHOD ncut), or by seeded region growing on a "
         "canopy height model (Dalponte & Coomes 2016; METHOD chm), the classic baseline. "
@@ -182,10 +180,9 @@ SEGMENT_TREES = Algorithm(
         Param("METHOD", ENUM, "Segmentation method", options=tuple(METHODS), default="ncut",
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on "
                    "the canopy height model (Dalponte & Coomes 2016)."),
-        Param("WINDOW", ENUM, "Tree-top window", options=("fixed", "variable"), default="fixed",
-              help="fixed: one circular window (WINDOW_DIAMETER_M); variable: grows with tree height."),
-        Param("WINDOW_DIAMETER_M", NUMBER, "Tree-top window diameter (m)", default=3.0, minimum=0.5,
-              maximum=50.0, help="Diameter of the local-maximum window for tree tops."),
+        Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
+              help="Diameter of the local-maximum window that finds the tree tops guiding the "
+                   "segmentation; left empty, each method uses its own measured default."),
         Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
               help="Lower tops are not trees; lower points belong to a tree only under its crown."),
         *NCUT_PARAMS,

@@ -12,7 +12,7 @@ sample="$root/resources/sample/sample.laz"
 mkdir -p "$out"
 run() { qgis_process.bin run "$@" 2>&1 | grep -v -e "setapi() is deprecated" -e "^$"; }
 run sylva:canopyheightmodel --INPUT="$sample" --RESOLUTION_M=0.5 --PIT_FREE=true --OUTPUT="$out/chm.tif"
-run sylva:treetops --INPUT="$sample" --WINDOW=0 --WINDOW_DIAMETER_M=3 --MIN_HEIGHT_M=2 --OUTPUT="$out/tree_tops.gpkg"
+run sylva:treetops --INPUT="$sample" --WINDOW=1 --MIN_HEIGHT_M=2 --OUTPUT="$out/tree_tops.gpkg"
 run sylva:segmenttrees --INPUT="$sample" --METHOD=0 --OUTPUT="$out/segmented.laz" \
     --TREE_TOPS="$out/seg_tree_tops.gpkg" --CROWNS="$out/crowns.gpkg" --CROWN_POINTS="$out/crown_points.gpkg" \
     --STEM_POINTS="$out/stem_points.gpkg" --TREES="$out/trees.gpkg"
