@@ -52,6 +52,7 @@ class Param:
     geometry: str = POINT           # for VECTOR_OUT
     help: str = ""                  # one or two sentences for the user
     advanced: bool = False
+    style: str = ""                 # VECTOR_OUT: a .qml in resources/styles applied when QGIS loads the layer
 
     @property
     def is_output(self) -> bool:

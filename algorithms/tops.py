@@ -64,7 +64,7 @@ TREE_TOPS = Algorithm(
         Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
               help="Local maxima lower than this above the ground are not trees (shrubs, cars, noise)."),
         crs_override(),
-        Param("OUTPUT", VECTOR_OUT, "Tree tops", geometry=POINT,
+        Param("OUTPUT", VECTOR_OUT, "Tree tops", geometry=POINT, style="tree_tops.qml",
               help="Point layer (PointZ, z = elevation of the top) with tree_id and height."),
     ),
     run=run,

@@ -5,7 +5,7 @@
 #     with Sylva and its Python dependencies from PyPI (pip install -e .[test]),
 #   - a QGIS profile in .qgis-profile with the plugin enabled, for qgis_process.
 # With --viewers (what scripts/test.sh asks for) it also installs the real 3D viewers the export
-# tests drive: Chromium (Debian), Node.js packages in tools/viewers (npm: glTF validator, loaders.gl,
+# tests drive: Chromium and Xvfb (Debian; Xvfb for QGIS's own 3D renderer), Node.js packages in tools/viewers (npm: glTF validator, loaders.gl,
 # CesiumJS) and, when Maven is present, the CityGML schemas (citygml4j from Maven Central).
 # A second run only checks and returns in a few seconds.
 set -euo pipefail
@@ -19,7 +19,7 @@ if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
 
 debs="qgis python3-qgis qgis-providers python3-venv"
 if [ "$viewers" = 1 ]; then
-    debs="$debs chromium"
+    debs="$debs chromium xvfb"
     command -v node >/dev/null 2>&1 || debs="$debs nodejs npm"
 fi
 want_n=$(echo $debs | wc -w)
