@@ -11,7 +11,7 @@ from ..core.table import VectorTable
 from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
 from .spec import ENUM, FILE_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param, Result
 
-METHODS = ("hybrid", "greedy", "guided")
+METHODS = ("hybrid", "greedy", "guided", "dense", "auto")
 
 GREEDY_PARAMS = method_params(GreedySkeleton, {
     "voxel_m": ("Thinning voxel d_l (m)", "Greedy skeleton: voxel pitch of the thinning (Hu et al. §5.1, §6.2: 0.2 m)."),
@@ -33,12 +33,17 @@ GUIDED_PARAMS = method_params(GuidedGrowth, {
 }, advanced=("tropism",))
 
 
-def _method(args):
-    from ..core.reconstruct import Hybrid
+def _methods(args):
+    """(method, dense_method) for ModelOptions from the METHOD choice."""
+    from ..core.reconstruct import Hybrid, VariationalKMeans
 
     greedy = build_method(GreedySkeleton, args)
     guided = build_method(GuidedGrowth, args)
-    return {"hybrid": Hybrid(primary=greedy, fallback=guided), "greedy": greedy, "guided": guided}[args["METHOD"]]
+    hybrid = Hybrid(primary=greedy, fallback=guided)
+    # Dense scans: Yan et al. with the fitted-cylinder options measured best on thick stems (benchmarks/dense.py).
+    dense = VariationalKMeans(axis="normals", radius="fit")
+    return {"hybrid": (hybrid, None), "greedy": (greedy, None), "guided": (guided, None),
+            "dense": (dense, None), "auto": (hybrid, dense)}[args["METHOD"]]
 
 
 def skeleton_table(trees, cloud, crs) -> VectorTable:
@@ -79,7 +84,8 @@ def run(args: dict, feedback: Feedback) -> Result:
     if len(metrics) == 0:
         raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
     feedback.info(f"{len(metrics)} trees to model")
-    options = ModelOptions(method=_method(args), lod=args["LOD"], leaves=args["LEAVES"])
+    method, dense = _methods(args)
+    options = ModelOptions(method=method, dense_method=dense, lod=args["LOD"], leaves=args["LEAVES"])
     trees = model_trees(cloud, labels, metrics, options, progress=scaled(feedback.progress, 0.05, 0.85),
                         cancelled=feedback.cancelled)
     columns = metrics.columns()
@@ -124,7 +130,9 @@ RECONSTRUCT_TREES = Algorithm(
         input_cloud(" It must carry a treeID dimension (0 = no tree)."),
         Param("METHOD", ENUM, "Method", options=METHODS, default="hybrid",
               help="hybrid: greedy skeleton, guided growth where it fails (Hu §6.2); greedy: Hu et al. "
-                   "only; guided: Guo et al. only."),
+                   "only; guided: Guo et al. only; dense: Yan et al. variational k-means, for terrestrial "
+                   "or drone scans where branches are visible; auto: dense for trees dense enough "
+                   "(8th neighbour within 0.25 m, lower stem scanned), hybrid for the others."),
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
         Param("LOD", INTEGER, "Level of detail", default=0, minimum=0, maximum=2,

@@ -28,7 +28,7 @@ from .geometry import (branch_count, pipe_model_radii, simplify_skeleton, total_
 from .leaves import LeafCards, NeedleClusters, grow_leaves
 from .measure import TreeMetrics, estimate_dbh
 from .progress import CancelCheck, Progress, check, report
-from .reconstruct import Hybrid, TreePoints, reconstruct_tree
+from .reconstruct import Hybrid, TreePoints, is_dense_scan, reconstruct_tree
 
 LEAVES = ("auto", "broadleaf", "needles", "none")
 
@@ -36,6 +36,7 @@ LEAVES = ("auto", "broadleaf", "needles", "none")
 @dataclass(frozen=True)
 class ModelOptions:
     method: Any = Hybrid()
+    dense_method: Any = None      # used instead of `method` for trees is_dense_scan() calls dense
     lod: int = 1
     leaves: str = "auto"          # auto: needles for conical crowns, leaf cards otherwise
     leaf_shape: str = "ovate"
@@ -92,13 +93,22 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
         i = row_of[int(tree_id)]
         xyz = local[idx]
         ground_z = float(np.median(xyz[:, 2] - height[idx]))
-        rec = reconstruct_tree(TreePoints(int(tree_id), xyz, ground_z), options.method)
+        method = options.method
+        if options.dense_method is not None and is_dense_scan(xyz):
+            method = options.dense_method
+        rec = reconstruct_tree(TreePoints(int(tree_id), xyz, ground_z), method)
         tree_h, crown_d = float(metrics.height[i]), float(metrics.crown_diameter[i])
         dbh, source = estimate_dbh(xyz, height[idx], tree_h, crown_d)
         skeleton = simplify_skeleton(rec.skeleton, options.simplify_m) if options.simplify_m > 0 else rec.skeleton
-        stem_r = max(dbh, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
-        radii = pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2),
-                                 trunk_radius_m=stem_r)
+        if skeleton.radius.max() > 0:
+            # Dense-scan methods measure radii from fitted cylinders (Yan et al. §4): keep them.
+            radii = skeleton.radius
+            if source != "measured":
+                dbh, source = 2.0 * float(radii[skeleton.root]), "cylinder"
+        else:
+            stem_r = max(dbh, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
+            radii = pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2),
+                                     trunk_radius_m=stem_r)
         skeleton = with_radii(skeleton, radii)
         base = skeleton.nodes[skeleton.root].copy()
         shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)

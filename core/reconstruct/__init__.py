@@ -26,10 +26,11 @@ from ..progress import CancelCheck, Progress
 from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
 from .colonize import GuidedGrowth
 from .hybrid import Hybrid
+from .kmeans import VariationalKMeans, is_dense_scan
 from .skeleton import GreedySkeleton
 
 __all__ = ["TreePoints", "Skeleton", "Reconstruction", "GreedySkeleton", "GuidedGrowth", "Hybrid",
-           "reconstruct_tree", "minimal_skeleton"]
+           "VariationalKMeans", "is_dense_scan", "reconstruct_tree", "minimal_skeleton"]
 
 
 def reconstruct_tree(tree: TreePoints, method=Hybrid(), progress: Progress = None,
