@@ -81,3 +81,19 @@ def test_untagged_tile_is_refused(sample_laz, tmp_path):
     run = subprocess.run([sys.executable, "-m", "sylva.cli", "reconstructtrees", f"--INPUT={sample_laz}",
                           f"--TREES={tmp_path / 't.gpkg'}"], capture_output=True, text=True)
     assert run.returncode == 1 and "treeID" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_a_tree_cut_by_the_tile_edge_still_gets_a_model():
+    """Half a crown (the other half beyond the tile edge) and no stem points: a model, not a crash."""
+    from sylva.core.reconstruct import TreePoints, reconstruct_tree
+
+    rng = np.random.default_rng(5)
+    u = rng.uniform(size=(600, 3))
+    r = 3.0 * np.sqrt(u[:, 0]) * (1 - u[:, 2])
+    a = np.pi * u[:, 1] - np.pi / 2          # only the half with x >= 0
+    crown = np.column_stack([r * np.cos(a), r * np.sin(a), 8 + 10 * u[:, 2]])
+    rec = reconstruct_tree(TreePoints(9, crown, 0.0))
+    sk = rec.skeleton
+    assert len(sk) > 5 and sk.nodes[sk.root, 2] == pytest.approx(0.0, abs=0.3)
+    assert sk.nodes[:, 2].max() > 15
+    assert (sk.distance(crown) < 0.5).mean() > 0.8
