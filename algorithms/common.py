@@ -79,7 +79,8 @@ def build_method(cls, args: dict, **fixed):
     """An instance of ``cls`` from the upper-case args of its exposed fields (see method_params)."""
     import dataclasses
 
-    values = {f.name: args[f.name.upper()] for f in dataclasses.fields(cls) if f.name.upper() in args}
+    values = {f.name: args[f.name.upper()] for f in dataclasses.fields(cls)
+              if args.get(f.name.upper()) is not None}  # an optional value left empty keeps the default
     values.update(fixed)
     return cls(**values)
 

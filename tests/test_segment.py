@@ -313,3 +313,41 @@ def test_mixed_conifer_agrees_with_lidr_when_available():
     # 2 m top window over-segments this 4.7 points/m2 tile (see the benchmark)
     assert 150 <= n_ours <= 800
     assert len(ious) > 0.8 * n_lidr and np.median(ious) > 0.3
+
+
+def test_start_boundary_ncut_and_saddle_match_eq1():
+    """The vectorised per-pair NCut (Hu et al. Eq. 1) and saddle height equal a direct count."""
+    from sylva.core.segment import ground_mask
+    from sylva.core.segment.ncut import _pair_ncut, voxel_graph
+
+    cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
+    h = cloud.attrs["height"]
+    crown = (h >= 2.0) & ~ground_mask(cloud, h)
+    g = voxel_graph(cloud, cloud.local_xyz(), h, crown, NormalizedCut())
+    region = (g.xyz[:, 0] > np.median(g.xyz[:, 0])).astype(np.int64)
+    ncut, saddle = _pair_ncut(g, region, np.array([[0, 1]]), 2)
+    W = g.W.toarray()
+    A, B = region == 0, region == 1
+    cut = W[np.ix_(A, B)].sum()
+    expected = cut / W[A].sum() + cut / W[B].sum()
+    assert ncut[0] == pytest.approx(expected, rel=1e-9)
+    a, b = g.edges.T
+    across = region[a] != region[b]
+    assert saddle[0] == pytest.approx(np.minimum(g.xyz[a, 2], g.xyz[b, 2])[across].max())
+
+
+def test_top_search_on_column_maxima_keeps_the_highest_point_per_column():
+    from sylva.core.segment.ncut import _column_maxima
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 3, size=(500, 2))
+    z = rng.uniform(0, 10, size=500)
+    z[7] = z[8] = 20.0       # a tie: the lower index wins
+    xy[8] = xy[7]
+    keep = _column_maxima(xy, z, 0.5)
+    cells = np.floor((xy - xy.min(axis=0)) / 0.5).astype(int)   # cells from the lower-left point
+    for cell in np.unique(cells, axis=0):
+        members = np.flatnonzero((cells == cell).all(axis=1))
+        best = members[np.argmax(z[members])]       # argmax: first of equal maxima
+        assert best in keep
+    assert len(keep) == len(np.unique(cells, axis=0)) and 7 in keep and 8 not in keep

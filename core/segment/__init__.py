@@ -89,16 +89,21 @@ class LocalTops:
 
 
 def resolve_tops(cloud: PointCloud, tops, min_height_m: float, window_m: float,
-                 progress: Progress = None, cancelled: CancelCheck = None) -> LocalTops:
+                 progress: Progress = None, cancelled: CancelCheck = None,
+                 search=None) -> LocalTops:
     """The tops to segment from, in the local frame; found with find_tree_tops if None.
 
-    The default window is a 3 m fixed circular window (lidR's ``lmf(ws = 3)``
-    is the common choice for conifer ALS at this scale).
+    When found, a ``window_m`` fixed circular window is used (lidR's
+    ``lmf(ws = window_m)``).  ``search`` (indices of points, optional)
+    restricts the search to those points, e.g. the highest point of each
+    narrow column (every top is one; the window maximum is then taken over the
+    column maxima only), which is several times faster on dense clouds.
     """
     if tops is None:
         from ..tops import FixedWindow, find_tree_tops
 
-        tops = find_tree_tops(cloud, window=FixedWindow(diameter_m=window_m),
+        subset = cloud if search is None or len(search) == 0 else cloud.subset(search)
+        tops = find_tree_tops(subset, window=FixedWindow(diameter_m=window_m),
                               min_height_m=min_height_m, progress=progress,
                               cancelled=cancelled)
     xyz = np.asarray(tops.xyz, dtype=np.float64).reshape(-1, 3)
