@@ -113,7 +113,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..errors import EmptyInputError, InputError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
 from .trunk import add_trunk_points
 
 __all__ = ["GuidedGrowth", "SPECIES_PRESETS", "pca_weights", "influence_distance",
@@ -280,21 +280,6 @@ def find_root_clusters(xyz: np.ndarray, ground_z: float, band_m: float, link_m: 
     cy = np.bincount(lab, weights=low[:, 1])[keep] / sizes[keep]
     order = np.lexsort((cy, cx))
     return RootClusters(np.stack([cx, cy], axis=1)[order], sizes[keep][order])
-
-
-def _degenerate(xyz: np.ndarray, min_points: int) -> list:
-    """Flags that make a tree unmodellable (empty: go ahead); same rules as the greedy skeleton."""
-    if len(xyz) < min_points:
-        return ["too_few_points"]
-    unique = np.unique(xyz, axis=0)
-    if len(unique) < min_points:
-        return ["duplicate_points"]
-    spread = np.linalg.svd(unique - unique.mean(axis=0), compute_uv=False) / np.sqrt(len(unique))
-    if spread[1] < 0.01:
-        return ["collinear_points"]
-    if spread[2] < 0.01:
-        return ["coplanar_points"]
-    return []
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -518,7 +503,7 @@ class GuidedGrowth:
         if xyz[:, 2].min() < ground_z:
             flags.append("points_below_ground")
             ground_z = float(xyz[:, 2].min())
-        bad = _degenerate(xyz, int(self.min_points))
+        bad = degenerate_flags(xyz, int(self.min_points))
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             visited = self._coverage(skel.nodes, xyz)

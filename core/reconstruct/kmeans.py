@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import EmptyInputError, InputError, SylvaError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
 
 __all__ = ["VariationalKMeans", "Segmentation", "BranchStructure", "DenseModel", "knn_graph",
            "segment", "lloyd", "bounding_cylinders", "energy", "branch_structure", "model_branches",
@@ -1051,19 +1051,6 @@ class VariationalKMeans:
             if val not in allowed:
                 raise InputError(f"VariationalKMeans: {name} must be one of {allowed}, got {val!r}")
 
-    def _degenerate(self, xyz: np.ndarray) -> list:
-        if len(xyz) < self.min_points:
-            return ["too_few_points"]
-        srt = xyz[np.lexsort(xyz.T)]
-        distinct = 1 + int(np.count_nonzero(np.any(srt[1:] != srt[:-1], axis=1)))
-        if distinct < self.min_points:
-            return ["duplicate_points"]
-        spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0.0, None))[::-1]
-        if spread[1] < 0.01:
-            return ["collinear_points"]
-        if spread[2] < 0.01:
-            return ["coplanar_points"]
-        return []
 
     def model(self, tree: TreePoints, progress: Progress = None,
               cancelled: CancelCheck = None) -> DenseModel:
@@ -1079,7 +1066,7 @@ class VariationalKMeans:
         if xyz[:, 2].min() < ground_z:
             flags.append("points_below_ground")
             ground_z = float(xyz[:, 2].min())
-        bad = self._degenerate(xyz)
+        bad = degenerate_flags(xyz, self.min_points)
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             stats["t_total_s"] = time.perf_counter() - t_all

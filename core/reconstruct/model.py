@@ -260,3 +260,20 @@ def minimal_skeleton(xyz: np.ndarray, ground_z: float) -> Skeleton:
         return Skeleton(np.array([root, [cx, cy, hi[2]]]), np.array([-1, 0]),
                         is_added=np.array([True, True]))
     return Skeleton(np.array([root]), np.array([-1]), is_added=np.array([True]))
+
+
+def degenerate_flags(xyz: np.ndarray, min_points: int) -> List[str]:
+    """Why a tree cannot be modelled (empty list: it can): too few points, too few distinct
+    points, or all points within ~1 cm of a line or of a plane (spread along the principal axes)."""
+    if len(xyz) < min_points:
+        return ["too_few_points"]
+    srt = xyz[np.lexsort(xyz.T)]
+    distinct = 1 + int(np.count_nonzero(np.any(srt[1:] != srt[:-1], axis=1)))
+    if distinct < min_points:
+        return ["duplicate_points"]
+    spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0.0, None))[::-1]
+    if spread[1] < 0.01:
+        return ["collinear_points"]
+    if spread[2] < 0.01:
+        return ["coplanar_points"]
+    return []

@@ -41,7 +41,7 @@ from ..errors import EmptyInputError, InputError
 from ..progress import CancelCheck, Progress, check, report
 from .direction import direction_field
 from .graph import build_graph
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
 from .thinning import thin_voxels
 from .trunk import add_trunk_points
 
@@ -293,21 +293,6 @@ class GreedySkeleton:
             raise InputError("GreedySkeleton: lambda2_max must be >= 0 and min_visited_fraction in [0, 1]")
 
     # -- degenerate input ---------------------------------------------------
-    def _degenerate(self, xyz: np.ndarray) -> list:
-        """Flags that make the tree unmodellable (empty list: go ahead)."""
-        if len(xyz) < self.min_points:
-            return ["too_few_points"]
-        srt = xyz[np.lexsort(xyz.T)]
-        distinct = 1 + int(np.count_nonzero(np.any(srt[1:] != srt[:-1], axis=1)))
-        if distinct < self.min_points:
-            return ["duplicate_points"]
-        # Standard deviations along the principal axes, in metres.
-        spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0.0, None))[::-1]
-        if spread[1] < 0.01:       # all points within ~1 cm of a line
-            return ["collinear_points"]
-        if spread[2] < 0.01:       # all points within ~1 cm of a plane
-            return ["coplanar_points"]
-        return []
 
     def reconstruct(self, tree: TreePoints, progress: Progress = None,
                     cancelled: CancelCheck = None) -> Reconstruction:
@@ -322,7 +307,7 @@ class GreedySkeleton:
         if xyz[:, 2].min() < ground_z:
             flags.append("points_below_ground")
             ground_z = float(xyz[:, 2].min())
-        bad = self._degenerate(xyz)
+        bad = degenerate_flags(xyz, self.min_points)
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             stats["t_total_s"] = time.perf_counter() - t_all
