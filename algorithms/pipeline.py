@@ -1,0 +1,102 @@
+"""A whole survey in one go: sylva:pipeline (tiles with buffers -> trees, models, one GeoPackage)."""
+from __future__ import annotations
+
+from ..core.segment import ChmRegionGrowing, NormalizedCut
+from .common import crs_override
+from .spec import BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, NUMBER, STRING, Algorithm, Feedback, Param, Result
+
+SEGMENTATION = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
+
+
+def _inputs(text: str) -> list:
+    return [p.strip() for p in str(text or "").split(";") if p.strip()]
+
+
+def run(args: dict, feedback: Feedback) -> Result:
+    from pathlib import Path
+
+    from ..core.catalog import run_catalog
+    from ..core.errors import InputError
+    from ..core.pipeline import PipelineOptions
+
+    inputs = _inputs(args["INPUT"])
+    if not inputs:
+        raise InputError("INPUT: give a .vpc virtual point cloud, a folder of LAS/LAZ tiles or LAS/LAZ files")
+    out = args["OUTPUT_FOLDER"]
+    if not out:
+        raise InputError("OUTPUT_FOLDER: choose an output folder")
+    Path(out).mkdir(parents=True, exist_ok=True)
+    min_h = float(args["MIN_HEIGHT_M"])
+    options = PipelineOptions(
+        buffer_m=float(args["BUFFER_M"]), segmentation=SEGMENTATION[args["METHOD"]](min_height_m=min_h),
+        window_diameter_m=float(args["WINDOW_DIAMETER_M"]), min_height_m=min_h,
+        reconstruct=bool(args["RECONSTRUCT"]), lod=int(args["LOD"]), leaves=args["LEAVES"],
+        crs=args.get("CRS") or None)
+    scheduler = (args.get("SCHEDULER") or "").strip() or None
+    report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
+                         resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)
+    for line in report.summary().splitlines():
+        (feedback.warn if line.startswith("FAILED") else feedback.info)(line)
+    result = Result(values={"TREE_COUNT": report.trees, "TILE_COUNT": len(report.tiles),
+                            "FAILED_TILES": len(report.failures)})
+    result.files["OUTPUT_FOLDER"] = str(out)
+    if report.gpkg:
+        result.values["GEOPACKAGE"] = report.gpkg
+    return result
+
+
+PIPELINE = Algorithm(
+    id="pipeline",
+    name="Forest from tiles (pipeline)",
+    group="Individual trees",
+    group_id="trees",
+    summary=(
+        "Runs the whole chain — noise filter, height normalisation, tree tops, tree segmentation, "
+        "tree measurements and (optionally) 3D reconstruction — over every tile of a survey, each "
+        "tile with a buffer of its neighbours' points so that no tree is lost, split or counted twice "
+        "at a tile border: a tree belongs to the tile that holds its top, and its ID is derived from "
+        "the top's position, so it is the same whatever the tiling or the number of workers. Writes "
+        "into the output folder: forest.gpkg (trees, tree_tops, crowns, crown_points, stem_points, "
+        "skeletons), tiles/ (every tile with an int32 treeID), models/ (a GLB per tile and one 3D Tiles "
+        "tileset.json) and report.json/report.txt (tiles, trees, failures with reasons, time, points/s, "
+        "peak memory). A rerun skips the tiles already complete for the same inputs and parameters; a "
+        "tile that fails is retried once and reported without stopping the run."
+    ),
+    params=(
+        Param("INPUT", FILE, "Tiles (.vpc, LAS/LAZ or folder)",
+              file_filter="Virtual point clouds (*.vpc);;LAS/LAZ (*.las *.laz);;All files (*)",
+              help="A QGIS virtual point cloud (.vpc), one LAS/LAZ file, or a folder of LAS/LAZ tiles; "
+                   "several separated by ';'."),
+        Param("BUFFER_M", NUMBER, "Buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
+              help="Width of the ring of neighbouring points read around each tile; wider than the "
+                   "widest crown."),
+        Param("METHOD", ENUM, "Segmentation method", options=tuple(SEGMENTATION), default="ncut",
+              help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "
+                   "canopy height model (Dalponte & Coomes 2016)."),
+        Param("WINDOW_DIAMETER_M", NUMBER, "Tree-top window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
+              help="Diameter of the local-maximum window for tree tops."),
+        Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
+              help="Lower tops are not trees."),
+        Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,
+              help="Model every tree (hybrid greedy skeleton / guided growth) and write GLB and 3D Tiles; "
+                   "off: segmentation and measurements only (much faster)."),
+        Param("LOD", INTEGER, "Level of detail", default=0, minimum=0, maximum=2, advanced=True,
+              help="0: light models; 1: 8-sided smoothed branches; 2: every twig."),
+        Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
+              advanced=True, help="auto: needles on conical crowns, leaf cards otherwise."),
+        Param("WORKERS", INTEGER, "Parallel workers", default=1, minimum=1, maximum=256,
+              help="Local processes working on tiles at once (each needs the memory of one tile and "
+                   "its buffer)."),
+        Param("SCHEDULER", STRING, "Dask scheduler address", optional=True, advanced=True,
+              help="e.g. tcp://10.0.0.5:8786: send the tiles to a dask.distributed cluster instead of "
+                   "local workers (needs 'pip install dask[distributed]'; workers must see the same paths)."),
+        Param("RESUME", BOOLEAN, "Skip completed tiles", default=True,
+              help="Reuse tiles whose outputs are complete for the same input files and parameters."),
+        crs_override(),
+        Param("OUTPUT_FOLDER", FOLDER_OUT, "Output folder",
+              help="Receives forest.gpkg, tiles/, models/, parts/ and report.json/report.txt."),
+    ),
+    run=run,
+)
+
+ALGORITHMS = (PIPELINE,)

@@ -1,0 +1,560 @@
+"""From a folder of tiles to a forest: tiles + buffers, tree ownership, stable IDs, parallel runs.
+
+    report = run_catalog(["tiles/"], "out/", PipelineOptions(), workers=2)
+
+Inputs: LAS/LAZ files, folders of them, or QGIS virtual point clouds (``.vpc``:
+a STAC ItemCollection whose features give ``assets.data.href`` and
+``proj:bbox``/``bbox``).  Each tile is processed by
+:func:`sylva.core.pipeline.process_tile` with its neighbours' points within
+``buffer_m`` (see that module for the ownership and ID rules) in a local
+process pool (``workers``) or on a ``dask.distributed`` scheduler
+(``scheduler`` address).  A tile that fails is retried once, then reported;
+the run goes on.  A rerun skips every tile whose manifest matches its inputs
+(checksums of the tile and its neighbours) and the parameters.
+
+Output folder::
+
+    forest.gpkg            trees, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d
+    tiles/<tile>.laz       every input tile with an int32 treeID (0 = no tree)
+    models/<tile>.glb      the tile's owned trees, a node per tree
+    models/tileset.json    one 3D Tiles 1.1 tileset for the run (external tilesets per tile)
+    report.json, report.txt
+    parts/                 per-tile parts and manifests (what a resumed run reuses)
+
+Tree-ID collisions: IDs are 31-bit hashes of the top's position
+(:func:`sylva.core.pipeline.tree_ids`); each tile resolves the collisions among
+the tops it sees, and :func:`run_catalog` re-runs the same deterministic rule
+over the whole run's trees and rewrites the ``treeID`` of any tile (and the
+merged layers) whose local choice differs — so IDs depend only on the set of
+trees, never on tiling, order or workers.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+
+from .atomic import atomic_path, atomic_write_bytes
+from .errors import Cancelled, InputError, SylvaError
+from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile, tree_ids
+from .progress import CancelCheck, Progress, check, report
+
+LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d")
+LAS_SUFFIXES = (".las", ".laz")
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One input tile: its path, a unique name, and its (xmin, ymin, xmax, ymax) in CRS units."""
+
+    path: str
+    name: str
+    bounds: tuple
+    points: int = -1
+    metres_per_unit: float = 1.0
+
+
+# --------------------------------------------------------------------------- inputs
+
+def read_vpc(path) -> List[tuple]:
+    """(file path, bounds or None) of every feature of a QGIS virtual point cloud (.vpc)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text("utf-8"))
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: not a readable virtual point cloud ({err})") from None
+    if doc.get("type") != "FeatureCollection" or not isinstance(doc.get("features"), list):
+        raise InputError(f"{path}: not a virtual point cloud (a STAC FeatureCollection with features)")
+    out = []
+    for i, feature in enumerate(doc["features"]):
+        try:
+            href = feature["assets"]["data"]["href"]
+        except (KeyError, TypeError):
+            raise InputError(f"{path}: feature {i} has no assets.data.href") from None
+        p = Path(href[7:] if href.startswith("file://") else href)
+        p = p if p.is_absolute() else (path.parent / p)
+        props = feature.get("properties") or {}
+        bbox = props.get("proj:bbox") or feature.get("bbox")
+        bounds = None
+        if bbox and len(bbox) in (4, 6):
+            b = [float(v) for v in bbox]
+            bounds = (b[0], b[1], b[2], b[3]) if len(b) == 4 else (b[0], b[1], b[3], b[4])
+        out.append((str(p.resolve()), bounds))
+    return out
+
+
+def write_vpc(path, tiles: Sequence[Tile], crs=None) -> Path:
+    """Write a minimal QGIS virtual point cloud listing ``tiles`` (paths relative to the .vpc)."""
+    path = Path(path)
+    features = []
+    epsg = crs.to_epsg() if crs is not None and hasattr(crs, "to_epsg") else None
+    for t in tiles:
+        xmin, ymin, xmax, ymax = t.bounds
+        props = {"datetime": "2024-01-01T00:00:00Z", "pc:count": int(t.points), "proj:bbox": [xmin, ymin, xmax, ymax]}
+        if epsg:
+            props["proj:epsg"] = epsg
+        features.append({
+            "type": "Feature", "stac_version": "1.0.0",
+            "stac_extensions": ["https://stac-extensions.github.io/pointcloud/v1.0.0/schema.json",
+                                "https://stac-extensions.github.io/projection/v1.1.0/schema.json"],
+            "id": t.name, "geometry": None, "bbox": [xmin, ymin, xmax, ymax], "properties": props,
+            "links": [], "assets": {"data": {"href": "./" + os.path.relpath(t.path, path.parent),
+                                             "roles": ["data"]}},
+        })
+    doc = {"type": "FeatureCollection", "features": features}
+    return atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode("utf-8"))
+
+
+def list_tiles(inputs, crs=None) -> tuple:
+    """(tiles, failures): every LAS/LAZ of ``inputs`` (files, folders, .vpc) with its bounds.
+
+    A file whose header cannot be read is a failure (path, reason), not an error.
+    Tiles are sorted by path; names are the file stems, made unique.
+    """
+    from .io.las import las_info
+
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    found = {}
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            for f in sorted(p.iterdir()):
+                if f.suffix.lower() in LAS_SUFFIXES and f.is_file():
+                    found[str(f.resolve())] = None
+        elif p.suffix.lower() == ".vpc":
+            for f, bounds in read_vpc(p):
+                found[f] = bounds
+        elif p.suffix.lower() in LAS_SUFFIXES:
+            if not p.exists():
+                raise InputError(f"{p}: file not found")
+            found[str(p.resolve())] = None
+        else:
+            raise InputError(f"{p}: not a LAS/LAZ file, a folder or a .vpc virtual point cloud")
+    if not found:
+        raise InputError(f"no LAS/LAZ tiles in {', '.join(map(str, inputs))}")
+    tiles, failures, names = [], [], set()
+    for path in sorted(found):
+        try:
+            info = las_info(path, crs=crs)
+            b = info.bounds
+            bounds = (b[0], b[1], b[3], b[4])
+            points = info.point_count
+            mpu = float(info.units.horizontal_m)
+        except SylvaError as err:
+            failures.append({"name": Path(path).stem, "path": path, "reason": str(err), "attempts": 0})
+            continue
+        name = Path(path).stem
+        k = 2
+        while name in names:
+            name = f"{Path(path).stem}_{k}"
+            k += 1
+        names.add(name)
+        tiles.append(Tile(path, name, bounds, points, mpu))
+    return tiles, failures
+
+
+def file_checksum(path, block: int = 1 << 22) -> str:
+    """BLAKE2b (16 bytes) of a file's bytes."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        while True:
+            data = fh.read(block)
+            if not data:
+                break
+            h.update(data)
+    return h.hexdigest()
+
+
+def make_jobs(tiles: Sequence[Tile], out_dir, options: PipelineOptions) -> List[TileJob]:
+    """One :class:`TileJob` per tile, with its neighbours (bounds within ``buffer_m``) and resume checksum."""
+    sums = {t.path: file_checksum(t.path) for t in tiles}
+    jobs = []
+    for i, t in enumerate(tiles):
+        pad = options.buffer_m / t.metres_per_unit
+        box = (t.bounds[0] - pad, t.bounds[1] - pad, t.bounds[2] + pad, t.bounds[3] + pad)
+        neighbours = tuple((j, u.path, u.bounds) for j, u in enumerate(tiles)
+                           if j != i and not (u.bounds[2] < box[0] or u.bounds[0] > box[2]
+                                              or u.bounds[3] < box[1] or u.bounds[1] > box[3]))
+        key = hashlib.sha256("|".join([options.key(), sums[t.path]] +
+                                      [f"{Path(p).name}:{sums[p]}" for _, p, _ in neighbours]).encode()).hexdigest()[:24]
+        jobs.append(TileJob(i, t.name, t.path, t.bounds, neighbours, str(out_dir), options, key))
+    return jobs
+
+
+# --------------------------------------------------------------------------- execution
+
+def _failure(job: TileJob, err: BaseException) -> dict:
+    reason = str(err) if isinstance(err, SylvaError) else f"{type(err).__name__}: {err}"
+    return {"name": job.name, "path": job.path, "status": "failed", "reason": reason, "attempts": job.attempt}
+
+
+def _run_serial(jobs, on_done, cancelled):
+    for job in jobs:
+        check(cancelled)
+        try:
+            on_done(job, process_tile(job, cancelled=cancelled), None)
+        except Cancelled:
+            raise
+        except Exception as err:  # noqa: BLE001 — a tile's failure is reported, never fatal
+            on_done(job, None, err)
+
+
+def _pool_context():
+    import multiprocessing as mp
+
+    # fork is fast, but not safe once QGIS (Qt threads) is running in this process: spawn then
+    if sys.platform.startswith("linux") and "qgis.core" not in sys.modules:
+        return mp.get_context("fork")
+    ctx = mp.get_context("spawn")
+    exe = Path(sys.exec_prefix) / ("python.exe" if os.name == "nt" else "bin/python3")
+    if exe.exists() and not Path(sys.executable).name.lower().startswith("python"):
+        ctx.set_executable(str(exe))   # inside QGIS sys.executable is QGIS itself
+    return ctx
+
+
+def _run_pool(jobs, workers, on_done, cancelled):
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context()) as pool:
+        pending = {pool.submit(process_tile, job): job for job in jobs}
+        try:
+            while pending:
+                done, _ = wait(list(pending), timeout=0.5, return_when=FIRST_COMPLETED)
+                check(cancelled)
+                for fut in done:
+                    job = pending.pop(fut)
+                    err = fut.exception()
+                    retry = on_done(job, None if err else fut.result(), err)
+                    if retry is not None:
+                        pending[pool.submit(process_tile, retry)] = retry
+        except BaseException:
+            for fut in pending:
+                fut.cancel()
+            raise
+
+
+def _run_dask(jobs, scheduler, on_done, cancelled):
+    try:
+        from distributed import Client, wait
+    except ImportError:
+        raise InputError("the SCHEDULER option needs dask.distributed: pip install 'dask[distributed]'") from None
+    client = scheduler if hasattr(scheduler, "submit") else Client(scheduler)
+    pending = {}
+    try:
+        pending = {client.submit(process_tile, job, pure=False, key=f"sylva-{job.name}-{job.attempt}-{job.checksum}"): job
+                   for job in jobs}
+        while pending:
+            try:
+                done = wait(list(pending), timeout=0.5, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                done = ()
+            check(cancelled)
+            for fut in done:
+                job = pending.pop(fut)
+                if fut.status == "error":
+                    retry = on_done(job, None, fut.exception())
+                else:
+                    retry = on_done(job, fut.result(), None)
+                if retry is not None:
+                    pending[client.submit(process_tile, retry, pure=False,
+                                          key=f"sylva-{retry.name}-{retry.attempt}-{retry.checksum}")] = retry
+    except BaseException:
+        client.cancel(list(pending))
+        raise
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+# --------------------------------------------------------------------------- merging
+
+def _resolve_ids(records, out_dir, bits) -> Dict[str, dict]:
+    """Per tile, the {old ID: new ID} its files need after run-wide collision resolution."""
+    keys, ids = [], []
+    for r in records:
+        z = np.load(part_paths(out_dir, r["name"])["ids"])
+        keys.append(z["owned_keys"].reshape(-1, 2))
+        ids.append(z["owned_ids"])
+    if not keys:
+        return {}
+    allk = np.concatenate(keys)
+    final = tree_ids(allk, bits)
+    lookup = {tuple(k): int(v) for k, v in zip(allk.tolist(), final.tolist())}
+    maps = {}
+    for r in records:
+        z = np.load(part_paths(out_dir, r["name"])["ids"])
+        m = {}
+        for k, v in zip(z["seen_keys"].reshape(-1, 2).tolist(), z["seen_ids"].tolist()):
+            new = lookup.get(tuple(k))
+            if new is not None and new != v:
+                m[int(v)] = new
+        if m:
+            maps[r["name"]] = m
+    return maps
+
+
+def _remap_las(path, mapping: dict) -> None:
+    from .io.las import read_las, write_las
+
+    cloud = read_las(path)
+    tid = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    old = np.array(list(mapping), dtype=np.int64)
+    new = np.array([mapping[k] for k in mapping], dtype=np.int64)
+    order = np.argsort(old)
+    pos = np.clip(np.searchsorted(old[order], tid), 0, len(old) - 1)
+    hit = old[order][pos] == tid
+    tid[hit] = new[order][pos[hit]]
+    write_las(path, cloud.with_attrs(treeID=tid.astype(np.int32)))
+
+
+def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
+    """Concatenate the layers of per-tile GeoPackages into one at ``path``, table by table in SQL.
+
+    Memory stays bounded (sqlite copies rows); extents are the union of the parts'.
+    ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
+    The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
+    pipeline and merged here like the others.
+    """
+    parts = [Path(p) for p in parts]
+    id_maps = list(id_maps or [{}] * len(parts))
+    with atomic_path(path) as tmp:
+        con = sqlite3.connect(tmp)
+        try:
+            con.execute("PRAGMA application_id = 1196444487")
+            con.execute("PRAGMA user_version = 10200")
+            created = {}
+            for k, part in enumerate(parts):
+                con.execute("ATTACH DATABASE ? AS part", (str(part),))
+                if k == 0:
+                    for (sql,) in con.execute("SELECT sql FROM part.sqlite_master WHERE type='table' AND name LIKE 'gpkg_%'"):
+                        con.execute(sql)
+                    con.execute("INSERT INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
+                    con.execute("INSERT INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
+                    con.execute("INSERT INTO gpkg_contents SELECT * FROM part.gpkg_contents")
+                else:
+                    con.execute("INSERT OR IGNORE INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
+                    con.execute("INSERT OR IGNORE INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
+                    con.execute("INSERT OR IGNORE INTO gpkg_contents SELECT * FROM part.gpkg_contents")
+                    con.execute(
+                        "UPDATE gpkg_contents SET "
+                        "min_x = min(coalesce(min_x, (SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                        "coalesce((SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_x)), "
+                        "min_y = min(coalesce(min_y, (SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                        "coalesce((SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_y)), "
+                        "max_x = max(coalesce(max_x, (SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                        "coalesce((SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_x)), "
+                        "max_y = max(coalesce(max_y, (SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                        "coalesce((SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_y))")
+                tables = [r[0] for r in con.execute(
+                    "SELECT name FROM part.sqlite_master WHERE type='table' AND name NOT LIKE 'gpkg_%' "
+                    "AND name NOT LIKE 'sqlite_%'")]
+                for t in tables:
+                    cols = [r[1] for r in con.execute(f'PRAGMA part.table_info("{t}")') if r[1] != "fid"]
+                    if t not in created:
+                        (sql,) = con.execute("SELECT sql FROM part.sqlite_master WHERE name = ?", (t,)).fetchone()
+                        con.execute(sql)
+                        created[t] = set(cols)
+                    for c in cols:
+                        if c not in created[t]:
+                            con.execute(f'ALTER TABLE "{t}" ADD COLUMN "{c}"')
+                            created[t].add(c)
+                    q = ",".join(f'"{c}"' for c in cols)
+                    (before,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
+                    con.execute(f'INSERT INTO main."{t}" ({q}) SELECT {q} FROM part."{t}"')
+                    if id_maps[k] and "tree_id" in cols:
+                        con.execute("CREATE TEMP TABLE IF NOT EXISTS idmap (old INTEGER PRIMARY KEY, new INTEGER)")
+                        con.execute("DELETE FROM idmap")
+                        con.executemany("INSERT INTO idmap VALUES (?,?)", list(id_maps[k].items()))
+                        con.execute(f'UPDATE main."{t}" SET tree_id = (SELECT new FROM idmap WHERE old = tree_id) '
+                                    f'WHERE fid > ? AND tree_id IN (SELECT old FROM idmap)', (before,))
+                con.commit()
+                con.execute("DETACH DATABASE part")
+            con.commit()
+        finally:
+            con.close()
+    return Path(path)
+
+
+def write_root_tileset(folder, tilesets: Sequence[Path]) -> Optional[Path]:
+    """``folder/tileset.json`` whose children are the per-tile tilesets (external tileset content).
+
+    Child bounding volumes are ECEF spheres around each tile's oriented box.
+    """
+    children, spheres, errors = [], [], []
+    folder = Path(folder)
+    for ts in tilesets:
+        doc = json.loads(Path(ts).read_text("utf-8"))
+        root = doc["root"]
+        M = np.array(root.get("transform", np.eye(4).ravel().tolist()), dtype=np.float64).reshape(4, 4).T
+        box = np.array(root["boundingVolume"]["box"], dtype=np.float64)
+        centre = (M @ np.r_[box[:3], 1.0])[:3]
+        R = M[:3, :3]
+        radius = float(sum(np.linalg.norm(R @ box[3 + 3 * i:6 + 3 * i]) for i in range(3)))
+        spheres.append((centre, radius))
+        errors.append(float(doc.get("geometricError", root.get("geometricError", 0.0))))
+        children.append({"boundingVolume": {"sphere": [*centre.tolist(), radius]},
+                         "geometricError": errors[-1],
+                         "content": {"uri": Path(os.path.relpath(ts, folder)).as_posix()}})
+    if not children:
+        return None
+    lo = np.min([c - r for c, r in spheres], axis=0)
+    hi = np.max([c + r for c, r in spheres], axis=0)
+    centre = (lo + hi) / 2
+    radius = float(max(np.linalg.norm(c - centre) + r for c, r in spheres))
+    doc = {"asset": {"version": "1.1", "extras": {"generator": "Sylva catalog"}},
+           "geometricError": 2 * radius,
+           "root": {"boundingVolume": {"sphere": [*centre.tolist(), radius]}, "geometricError": max(errors) * 2 + 1.0,
+                    "refine": "ADD", "children": children}}
+    return atomic_write_bytes(folder / "tileset.json", (json.dumps(doc, indent=1) + "\n").encode("utf-8"))
+
+
+# --------------------------------------------------------------------------- the run
+
+@dataclass
+class RunReport:
+    """What a run did: per-tile records, failures, totals (also written as report.json/.txt)."""
+
+    tiles: List[dict]
+    failures: List[dict]
+    skipped: List[str]
+    trees: int
+    points: int
+    seconds: float
+    workers: int
+    scheduler: Optional[str]
+    peak_rss_mb_per_worker: Dict[str, float]
+    id_collisions_rewritten: int
+    gpkg: Optional[str]
+    tileset: Optional[str]
+
+    @property
+    def points_per_s(self) -> float:
+        return self.points / max(self.seconds, 1e-9)
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["points_per_s"] = round(self.points_per_s, 1)
+        return d
+
+    def summary(self) -> str:
+        lines = [f"Sylva catalog run: {len(self.tiles)} tiles processed ({len(self.skipped)} reused from a "
+                 f"previous run), {len(self.failures)} failed",
+                 f"{self.trees:,} trees, {self.points:,} points in {self.seconds:.1f} s "
+                 f"({self.points_per_s:,.0f} points/s) with "
+                 + (f"dask scheduler {self.scheduler}" if self.scheduler else f"{self.workers} worker(s)"),
+                 "peak memory per worker (MB): " + ", ".join(f"{k}: {v:.0f}" for k, v in
+                                                           sorted(self.peak_rss_mb_per_worker.items()))]
+        if self.id_collisions_rewritten:
+            lines.append(f"{self.id_collisions_rewritten} tile(s) rewritten to resolve tree-ID collisions")
+        for f in self.failures:
+            lines.append(f"FAILED {f['name']} ({f.get('attempts', 0)} attempt(s)): {f['reason']}")
+        return "\n".join(lines) + "\n"
+
+
+def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), workers: int = 1,
+                scheduler=None, resume: bool = True, progress: Progress = None,
+                cancelled: CancelCheck = None) -> RunReport:
+    """Process every tile of ``inputs`` into ``out_dir`` (see the module docstring); returns the report.
+
+    ``workers`` local processes (1 = in this process); ``scheduler`` a
+    ``dask.distributed`` address (or Client), which then replaces the pool.
+    ``resume`` skips tiles whose manifest matches.  Failed tiles are retried
+    once and listed in the report; :class:`Cancelled` stops the run.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    if not out.parent.is_dir():
+        raise InputError(f"{out}: the parent folder does not exist")
+    for sub in ("tiles", "parts", "models"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    report(progress, 0.0, "reading tile headers")
+    tiles, failures = list_tiles(inputs, crs=options.crs)
+    if not tiles:
+        raise InputError("no readable tile: " + "; ".join(f["reason"] for f in failures))
+    jobs = make_jobs(tiles, out, options)
+    records: Dict[str, dict] = {}
+    skipped = []
+    todo = []
+    for job in jobs:
+        rec = is_complete(job) if resume else None
+        if rec is not None:
+            records[job.name] = rec
+            skipped.append(job.name)
+        else:
+            todo.append(job)
+    total = max(len(jobs), 1)
+    state = {"done": len(skipped)}
+
+    def on_done(job: TileJob, record, err):
+        if err is not None:
+            if isinstance(err, Cancelled):
+                raise err
+            if job.attempt < 2:
+                retry = replace(job, attempt=job.attempt + 1)
+                if scheduler is None and workers <= 1:
+                    try:
+                        on_done(retry, process_tile(retry, cancelled=cancelled), None)
+                    except Cancelled:
+                        raise
+                    except Exception as err2:  # noqa: BLE001
+                        on_done(retry, None, err2)
+                    return None
+                return retry
+            failures.append(_failure(job, err))
+        else:
+            records[job.name] = record
+        state["done"] += 1
+        report(progress, 0.9 * state["done"] / total, f"{state['done']} of {total} tiles")
+        return None
+
+    if todo:
+        if scheduler is not None:
+            _run_dask(todo, scheduler, on_done, cancelled)
+        elif workers > 1:
+            _run_pool(todo, workers, on_done, cancelled)
+        else:
+            _run_serial(todo, on_done, cancelled)
+    check(cancelled)
+    report(progress, 0.9, "merging")
+    done = [records[j.name] for j in jobs if j.name in records]
+    maps = _resolve_ids(done, out, options.id_bits)
+    for name, mapping in maps.items():
+        _remap_las(part_paths(out, name)["las"], mapping)
+        ids_path = part_paths(out, name)["ids"]
+        z = dict(np.load(ids_path))
+        for k in ("owned_ids", "seen_ids"):
+            z[k] = np.array([mapping.get(int(v), int(v)) for v in z[k]], dtype=np.int64)
+        with atomic_path(ids_path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **z)
+    gpkg = None
+    if done:
+        gpkg = merge_gpkg([part_paths(out, r["name"])["gpkg"] for r in done], out / "forest.gpkg",
+                          [maps.get(r["name"], {}) for r in done])
+    tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
+    root = write_root_tileset(out / "models", tilesets) if tilesets else None
+    peaks: Dict[str, float] = {}
+    for r in done:
+        if r["name"] in skipped:
+            continue
+        key = f"pid {r['pid']}"
+        peaks[key] = max(peaks.get(key, 0.0), float(r["peak_rss_mb"]))
+    result = RunReport(
+        tiles=done, failures=failures, skipped=skipped, trees=int(sum(r["trees"] for r in done)),
+        points=int(sum(r["points"] for r in done)), seconds=round(time.perf_counter() - t0, 3),
+        workers=int(workers), scheduler=None if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
+        peak_rss_mb_per_worker=peaks, id_collisions_rewritten=len(maps),
+        gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root))
+    atomic_write_bytes(out / "report.json", (json.dumps(result.as_dict(), indent=1, default=str) + "\n").encode())
+    atomic_write_bytes(out / "report.txt", result.summary().encode("utf-8"))
+    report(progress, 1.0, f"{result.trees} trees")
+    return result

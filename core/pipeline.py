@@ -1,0 +1,459 @@
+"""One tile of a catalog run: read it with a buffer, segment, keep the trees it owns, write its parts.
+
+:func:`process_tile` is the unit of work that :mod:`sylva.core.catalog` hands to
+a process pool or a ``dask.distributed`` cluster.  It takes a picklable
+:class:`TileJob` and returns a JSON-able dict; everything it writes goes into
+the run's output folder under names derived from the tile, each file written
+atomically, and the tile's manifest (``parts/<tile>.done.json``) last, so a
+tile is either complete or redone.
+
+Rules (the design of ARCHITECTURE.md, catalog.py; lidR's catalog engine):
+
+* The tile is read whole; every neighbour whose header bounds meet the
+  buffered box (tile bounds grown by ``buffer_m``) is streamed chunk by chunk
+  (:func:`sylva.core.io.las.read_las_chunks`) and only its points inside the
+  box are kept: memory is one tile plus its buffer.
+* Computation happens in a local frame whose origin is *snapped to a global
+  grid* (:data:`ANCHOR_GRID_M`, a common multiple of the voxel, cell and window
+  pitches used downstream), not at the tile's lower-left corner: voxels and
+  grid cells then fall on the same places whatever the tiling, which is what
+  makes the segmentation of a tree the same in a 3 x 3, a 6 x 6 and a single
+  tile run.
+* A tree belongs to the one tile whose *file* holds the point that is its top
+  (tops are points of the cloud, :func:`sylva.core.tops.find_tree_tops`); an
+  exactly duplicated top point in two files goes to the tile listed first.
+  Tiles thus need not be a regular grid; overlaps and gaps are fine.
+* Tree IDs come from the top's position (:func:`tree_ids`), so the same tree
+  gets the same ID in any tiling, run order or worker count.
+* Per-point ``treeID`` of a tile's own points is the label its buffered
+  segmentation gives them, owned tree or not (IDs are global, so a border
+  tree's points in two files carry one ID); per-tree outputs (trees, tops,
+  crowns, crown/stem points, skeletons, models) are written by the owner tile
+  from all the points its buffered segmentation gives the tree, wherever they lie.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+try:
+    import resource
+except ImportError:  # Windows
+    resource = None
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Optional, Tuple
+
+import numpy as np
+
+from .cloud import PointCloud
+from .errors import InputError, SylvaError
+from .segment import NormalizedCut
+
+#: Local frames are anchored on multiples of this many metres (a common multiple of
+#: 0.7 m ncut voxels, 0.5 m CHM cells, 5 m noise voxels, 0.2 m thinning voxels, 1 m cells).
+ANCHOR_GRID_M = 70.0
+#: Tree tops are snapped to this grid (metres) before hashing them into an ID.
+ID_GRID_M = 0.01
+
+_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@dataclass(eq=False)
+class AnchoredCloud(PointCloud):
+    """A :class:`PointCloud` whose local frame starts at ``anchor`` (CRS units), not at its minimum.
+
+    ``dataclasses.replace`` (used by ``subset``/``with_attrs``) keeps the anchor.
+    """
+
+    anchor: Any = None
+
+    @property
+    def origin(self) -> np.ndarray:  # noqa: D102
+        if self.anchor is None:
+            return super().origin
+        return np.asarray(self.anchor, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """Parameters of the per-tile job (one value per run; part of the resume key).
+
+    ``buffer_m``: width of the neighbours' ring read around each tile (wider than
+    the widest crown).  ``segmentation``: a method value of
+    :func:`sylva.core.segment.segment_trees` (default Hu et al. 2017 §4.1
+    normalised cut).  ``window_diameter_m``/``min_height_m``: tree-top local
+    maximum filter.  ``reconstruct``: model every owned tree (skeletons, GLB, 3D
+    Tiles) with ``reconstruction`` (default :class:`sylva.core.reconstruct.Hybrid`),
+    ``lod`` and ``leaves``.  ``id_bits``: bits of the position-derived tree ID
+    (31 for the int32 ``treeID``; smaller only to test collision handling).
+    """
+
+    buffer_m: float = 15.0
+    segmentation: Any = NormalizedCut()
+    window_diameter_m: float = 3.0
+    min_height_m: float = 2.0
+    hull: str = "convex"
+    crown_base_gap_m: float = 1.5
+    reconstruct: bool = True
+    reconstruction: Any = None
+    lod: int = 0
+    leaves: str = "auto"
+    chunk_size: int = 1_000_000
+    id_bits: int = 31
+    crs: Optional[str] = None
+
+    def key(self) -> str:
+        """A digest of every parameter (what a resumed run must match)."""
+        return hashlib.sha256(repr(self).encode("utf-8")).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """Everything one tile's job needs; plain data, cheap to pickle."""
+
+    index: int
+    name: str
+    path: str
+    bounds: Tuple[float, float, float, float]            # xmin, ymin, xmax, ymax (CRS units)
+    neighbours: Tuple[Tuple[int, str, Tuple[float, float, float, float]], ...]
+    out_dir: str
+    options: PipelineOptions = field(default_factory=PipelineOptions)
+    checksum: str = ""                                   # of this tile + neighbours + options
+    attempt: int = 1
+
+
+# --------------------------------------------------------------------------- tree IDs
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        z = (x + np.uint64(0x9E3779B97F4A7C15)) & _MASK64
+        z = ((z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)) & _MASK64
+        z = ((z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)) & _MASK64
+        return z ^ (z >> np.uint64(31))
+
+
+def grid_keys(xy: np.ndarray, metres_per_unit: float = 1.0) -> np.ndarray:
+    """(n, 2) int64 top positions snapped to :data:`ID_GRID_M` (source CRS, any units)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return np.round(xy * metres_per_unit / ID_GRID_M).astype(np.int64)
+
+
+def _hash_ids(keys: np.ndarray, salt: np.ndarray, bits: int) -> np.ndarray:
+    gx = keys[:, 0].astype(np.uint64)
+    gy = keys[:, 1].astype(np.uint64)
+    with np.errstate(over="ignore"):
+        h = _splitmix64(_splitmix64(gx) ^ gy)
+        h = _splitmix64(h ^ np.asarray(salt, dtype=np.uint64))
+    return (h & np.uint64((1 << bits) - 1)).astype(np.int64)
+
+
+def tree_ids(keys: np.ndarray, bits: int = 31) -> np.ndarray:
+    """Stable positive IDs (< 2**bits) of trees whose tops snap to ``keys`` (:func:`grid_keys`).
+
+    ID = low ``bits`` bits of a 64-bit splitmix hash of the snapped (x, y), salt 0.
+    Collisions are resolved deterministically: the trees are taken in (gx, gy)
+    order and each gets the first salt 0, 1, 2, ... whose ID is neither 0 nor
+    already taken by an earlier tree.  The result therefore depends only on the
+    *set* of positions; :mod:`sylva.core.catalog` applies the same rule to the
+    whole run's set and rewrites the rare tile whose local set resolved
+    differently.
+    """
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
+    if not 2 <= bits <= 31:
+        raise InputError(f"tree IDs need 2..31 bits, got {bits}")
+    ids = _hash_ids(keys, np.zeros(len(keys), dtype=np.uint64), bits)
+    if len(ids) == 0 or ((ids > 0).all() and len(np.unique(ids)) == len(ids)):
+        return ids
+    if len(keys) >= (1 << bits) - 1:
+        raise InputError(f"{len(keys)} trees do not fit {bits}-bit tree IDs")
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    taken = set()
+    out = np.zeros(len(keys), dtype=np.int64)
+    for i in order:
+        salt = 0
+        v = int(ids[i])
+        while v == 0 or v in taken:
+            salt += 1
+            v = int(_hash_ids(keys[i:i + 1], np.array([salt], dtype=np.uint64), bits)[0])
+        taken.add(v)
+        out[i] = v
+    return out
+
+
+# --------------------------------------------------------------------------- reading
+
+def _box_hits(bounds, box) -> bool:
+    return not (bounds[2] < box[0] or bounds[0] > box[2] or bounds[3] < box[1] or bounds[1] > box[3])
+
+
+def _concat(clouds, anchor) -> AnchoredCloud:
+    names = set(clouds[0].attrs)
+    for c in clouds[1:]:
+        names &= set(c.attrs)
+    first = clouds[0]
+    attrs = {n: np.concatenate([np.asarray(c.attrs[n]) for c in clouds]) for n in first.attrs if n in names}
+    return AnchoredCloud(xyz=np.concatenate([c.xyz for c in clouds]), attrs=attrs, crs=first.crs,
+                         units=first.units, source=first.source, template=None, anchor=anchor)
+
+
+def read_buffered(job: TileJob, progress=None, cancelled=None):
+    """(own cloud as read, buffered AnchoredCloud with int32 attr ``_tile``, warnings).
+
+    The buffered cloud starts with the tile's own points, in file order.
+    Unreadable neighbours are left out with a warning (their own job reports them).
+    """
+    from .io.las import read_las, read_las_chunks
+    from .progress import check
+
+    opts = job.options
+    own = read_las(job.path, crs=opts.crs)
+    if own.crs is None:
+        raise InputError(f"{job.path}: the file has no coordinate reference system; set the CRS parameter")
+    pad = opts.buffer_m / own.units.horizontal_m
+    xmin, ymin, xmax, ymax = job.bounds
+    box = (xmin - pad, ymin - pad, xmax + pad, ymax + pad)
+    grid = ANCHOR_GRID_M / own.units.horizontal_m
+    anchor = np.array([np.floor(box[0] / grid) * grid, np.floor(box[1] / grid) * grid, 0.0])
+    parts = [own]
+    tiles = [np.full(len(own), job.index, dtype=np.int32)]
+    warnings = []
+    for index, path, bounds in job.neighbours:
+        check(cancelled)
+        if not _box_hits(bounds, box):
+            continue
+        try:
+            for chunk in read_las_chunks(path, opts.chunk_size, crs=opts.crs or own.crs):
+                x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+                inside = (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
+                if inside.any():
+                    sub = chunk.subset(inside)
+                    parts.append(replace(sub, template=None))
+                    tiles.append(np.full(len(sub), index, dtype=np.int32))
+        except SylvaError as err:
+            warnings.append(f"neighbour {Path(path).name} left out of the buffer: {err}")
+    cloud = _concat(parts, anchor)
+    cloud = cloud.with_attrs(_tile=np.concatenate(tiles))
+    return own, cloud, warnings
+
+
+# --------------------------------------------------------------------------- the job
+
+def _reset_peak_rss() -> bool:
+    """Reset this process's peak-RSS mark (Linux >= 4.0), so that a tile's peak is its own.
+
+    ``ru_maxrss`` would not do: it survives fork and exec, so a worker would report
+    the peak of whatever process started it.
+    """
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory (MB) since :func:`_reset_peak_rss` (VmHWM), else the process's ru_maxrss."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    if resource is None:
+        return float("nan")
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def part_paths(out_dir, name: str) -> dict:
+    out = Path(out_dir)
+    return {
+        "las": out / "tiles" / f"{name}.laz",
+        "gpkg": out / "parts" / f"{name}.gpkg",
+        "ids": out / "parts" / f"{name}.ids.npz",
+        "glb": out / "models" / f"{name}.glb",
+        "tileset": out / "models" / "tileset" / name,
+        "manifest": out / "parts" / f"{name}.done.json",
+    }
+
+
+def _top_tiles(cloud: AnchoredCloud, tops, min_height_m: float) -> np.ndarray:
+    """For each top, the index of the tile whose file holds its point (lowest index on exact ties)."""
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(cloud.attrs["_tile"])
+    high = np.flatnonzero(np.asarray(cloud.attrs["height"]) >= min_height_m - 1e-9)
+    tree = cKDTree(tops.xyz)
+    d, j = tree.query(cloud.xyz[high], distance_upper_bound=1e-7)
+    hit = np.isfinite(d)
+    owner = np.full(len(tops), np.iinfo(np.int32).max, dtype=np.int64)
+    np.minimum.at(owner, j[hit], src[high[hit]])
+    return owner
+
+
+def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
+    """Segment (and model) one tile with its buffer; write its parts; return its record.
+
+    The record (JSON-able): name, index, status "done", points (own),
+    buffer_points, trees (owned), seconds, points_per_s, peak_rss_mb, pid,
+    warnings, files.  Raises :class:`SylvaError` (or anything) on failure; the
+    catalog retries once and reports.
+    """
+    import shapely
+
+    from .atomic import atomic_path, atomic_write_bytes
+    from .io.gpkg import write_gpkg
+    from .io.las import write_las
+    from .measure import CrownBase, tree_metrics
+    from .noise import noise_mask
+    from .progress import check, report
+    from .segment import segment_trees
+    from .table import VectorTable
+    from .terrain import SMRF, normalize
+    from .tops import FixedWindow, TreeTops, find_tree_tops
+
+    t0 = time.perf_counter()
+    _reset_peak_rss()
+    opts = job.options
+    paths = part_paths(job.out_dir, job.name)
+    for p in ("las", "gpkg", "glb"):
+        paths[p].parent.mkdir(parents=True, exist_ok=True)
+    report(progress, 0.0, f"{job.name}: reading with a {opts.buffer_m:g} m buffer")
+    own, cloud, warnings = read_buffered(job, progress, cancelled)
+    n_own = len(own)
+    check(cancelled)
+    keep = ~noise_mask(cloud)
+    kept_idx = np.flatnonzero(keep)
+    work = normalize(cloud.subset(keep), classify=SMRF())
+    report(progress, 0.1, f"{job.name}: tree tops")
+    tops = find_tree_tops(work, window=FixedWindow(opts.window_diameter_m), min_height_m=opts.min_height_m,
+                          cancelled=cancelled)
+    keys = grid_keys(tops.xyz[:, :2], work.units.horizontal_m)
+    gids = tree_ids(keys, opts.id_bits)
+    owner = _top_tiles(work, tops, opts.min_height_m)
+    owned = owner == job.index
+    seq_tops = TreeTops(tops.xyz, tops.height, np.arange(1, len(tops) + 1, dtype=np.int64), tops.crs)
+    report(progress, 0.15, f"{job.name}: segmenting {len(work):,} points, {len(tops)} tops")
+    labels = segment_trees(work, opts.segmentation, tops=seq_tops, cancelled=cancelled)
+    to_gid = np.concatenate([[0], gids]).astype(np.int64)
+    glabels = to_gid[labels]
+    owned_gid = np.concatenate([[False], owned])
+    mine = owned_gid[labels]
+    own_labels = np.where(mine, glabels, 0)
+    check(cancelled)
+    # the tile's own points with the treeID of their buffered segmentation
+    tree_id = np.zeros(n_own, dtype=np.int32)
+    in_own = kept_idx < n_own
+    tree_id[kept_idx[in_own]] = glabels[in_own]
+    write_las(paths["las"], own, extra={"treeID": tree_id}, cancelled=cancelled)
+    present = np.unique(glabels[in_own])
+    present = present[present > 0]
+    del own
+    report(progress, 0.6, f"{job.name}: measuring {int(owned.sum())} trees")
+    m = tree_metrics(work, own_labels, hull=opts.hull, crown_base=CrownBase(gap_m=opts.crown_base_gap_m))
+    crs = work.crs
+    columns = m.columns()
+    columns["tile"] = np.array([job.name] * len(m), dtype=object)
+    tables = []
+    skeletons = models_3d = None
+    files = {"las": str(paths["las"]), "gpkg": str(paths["gpkg"])}
+    if opts.reconstruct and len(m):
+        report(progress, 0.7, f"{job.name}: modelling {len(m)} trees")
+        from .export.gltf import write_glb
+        from .export.model import ExportFrame, TreeModel
+        from .export.tiles3d import write_tileset
+        from .forest import ModelOptions, model_trees
+        from .reconstruct import Hybrid
+
+        method = opts.reconstruction if opts.reconstruction is not None else Hybrid()
+        trees = model_trees(work, own_labels, m, ModelOptions(method=method, lod=opts.lod, leaves=opts.leaves),
+                            cancelled=cancelled)
+        for key in trees[0].record:
+            if key != "tree_id":
+                columns[key] = np.array([t.record[key] for t in trees])
+        columns["model_file"] = np.array([paths["glb"].name] * len(trees), dtype=object)
+        models = [TreeModel(t.tree_id, np.array([t.record["base_x"], t.record["base_y"], t.record["base_z"]]),
+                            t.wood, t.leaves, {k: columns[k][i] for k in columns})
+                  for i, t in enumerate(trees)]
+        frame = ExportFrame.from_cloud(work)
+        write_glb(models, paths["glb"], frame, cancelled=cancelled)
+        tileset_dir = paths["tileset"]
+        tileset_dir.parent.mkdir(parents=True, exist_ok=True)
+        write_tileset(models, tileset_dir, frame, cancelled=cancelled)
+        files["glb"] = str(paths["glb"])
+        files["tileset"] = str(tileset_dir / "tileset.json")
+        skeletons = _skeleton_table(trees, work, crs)
+        try:  # the QGIS-native 3D layer (core/export/gpkg3d.py), merged like the other layers
+            from .export.gpkg3d import models_table
+        except ImportError:
+            models_table = None
+        if models_table is not None:
+            models_3d = models_table(models, frame)
+        del models, trees
+    tables.append(VectorTable("trees", "none", None, columns, crs))
+    tables.append(VectorTable("tree_tops", "point", shapely.points(np.column_stack([m.x, m.y, m.top_z])),
+                              {"tree_id": m.tree_id, "height": m.height}, crs))
+    tables.append(VectorTable("crowns", "polygon", m.crowns,
+                              {"tree_id": m.tree_id, "height": m.height, "top_z": m.top_z,
+                               "crown_area": m.crown_area, "crown_diameter": m.crown_diameter}, crs, has_z=False))
+    height = work.attrs["height"]
+    for layer, mask in (("crown_points", (own_labels > 0) & ~m.is_stem), ("stem_points", m.is_stem)):
+        idx = np.flatnonzero(mask)
+        tables.append(VectorTable(layer, "point", shapely.points(work.xyz[idx]),
+                                  {"tree_id": own_labels[idx].astype(np.int64), "height": height[idx]}, crs))
+    if skeletons is not None:
+        tables.append(skeletons)
+    if models_3d is not None:
+        tables.append(models_3d)
+    write_gpkg(paths["gpkg"], tables)
+    # IDs written (for the run-wide collision check): owned trees and every ID in the LAS
+    seen = np.isin(gids, present) | owned
+    with atomic_path(paths["ids"]) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, owned_keys=keys[owned], owned_ids=gids[owned], seen_keys=keys[seen], seen_ids=gids[seen])
+    seconds = time.perf_counter() - t0
+    record = {
+        "name": job.name, "index": job.index, "path": job.path, "status": "done", "attempts": job.attempt,
+        "points": int(n_own), "buffer_points": int(len(cloud) - n_own), "trees": int(len(m)), "tops": int(owned.sum()),
+        "seconds": round(seconds, 3), "points_per_s": round(n_own / max(seconds, 1e-9), 1),
+        "peak_rss_mb": round(_peak_rss_mb(), 1), "pid": os.getpid(), "warnings": warnings,
+        "files": files, "checksum": job.checksum,
+    }
+    atomic_write_bytes(paths["manifest"], (json.dumps(record, indent=1) + "\n").encode("utf-8"))
+    report(progress, 1.0, f"{job.name}: {record['trees']} trees")
+    return record
+
+
+def _skeleton_table(trees, cloud, crs):
+    """One MultiLineStringZM per tree (parts = branch chains, M = radius in m), CRS coordinates."""
+    from .geometry import branches
+    from .table import VectorTable, multilinestring_zm_wkb
+
+    wkb, ids, n_chains = [], [], []
+    for t in trees:
+        sk = t.skeleton
+        chains = [c for c in branches(sk, sk.radius) if len(c) >= 2]
+        parts = [np.column_stack([cloud.from_local(sk.nodes[c]), sk.radius[c]]) for c in chains]
+        wkb.append(multilinestring_zm_wkb(parts))
+        ids.append(t.tree_id)
+        n_chains.append(len(parts))
+    return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
+                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_chains, dtype=np.int64)},
+                       crs, has_m=True)
+
+
+def is_complete(job: TileJob) -> Optional[dict]:
+    """The tile's manifest record when its outputs are complete for this job's inputs and options."""
+    paths = part_paths(job.out_dir, job.name)
+    try:
+        record = json.loads(paths["manifest"].read_text("utf-8"))
+    except (OSError, ValueError):
+        return None
+    if record.get("checksum") != job.checksum or record.get("status") != "done":
+        return None
+    if not all(Path(f).exists() for f in record.get("files", {}).values()) or not paths["ids"].exists():
+        return None
+    return record

@@ -1,0 +1,210 @@
+"""The catalog engine: tiles + buffers give the same forest as one tile; resume, failures, workers, .vpc."""
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sylva.core.catalog import list_tiles, read_vpc, run_catalog, write_vpc
+from sylva.core.errors import InputError
+from sylva.core.io.gpkg import read_gpkg
+from sylva.core.io.las import read_las, write_las
+from sylva.core.pipeline import PipelineOptions, grid_keys, tree_ids
+from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+
+FAST = PipelineOptions(reconstruct=False)
+
+
+def cut(cloud, truth, folder: Path, n: int):
+    """Write ``cloud`` as n x n LAS tiles (by position) into ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+    ix = np.minimum(((x - x.min()) / (np.ptp(x) + 1e-9) * n).astype(int), n - 1)
+    iy = np.minimum(((y - y.min()) / (np.ptp(y) + 1e-9) * n).astype(int), n - 1)
+    for i in range(n):
+        for j in range(n):
+            m = (ix == i) & (iy == j)
+            write_las(folder / f"t_{i}_{j}.las", cloud.subset(m), extra={"true_tree": truth[m]})
+    return folder
+
+
+@pytest.fixture(scope="module")
+def stand(tmp_path_factory):
+    root = tmp_path_factory.mktemp("catalog")
+    spec = StandSpec(width_m=60.0, depth_m=60.0, stems_per_ha=250, crown_overlap=0.5, seed=3)
+    scan = simulate_scan(make_stand(spec), ScanSpec(pulse_density=5.0, seed=3))
+    cut(scan.cloud, scan.truth_tree, root / "one", 1)
+    cut(scan.cloud, scan.truth_tree, root / "three", 3)
+    whole = run_catalog([root / "one"], root / "out_one", FAST)
+    return root, scan, whole
+
+
+def labelled_points(out: Path):
+    """(mm-rounded xyz + gps_time sort key, treeID) of every output tile, in one canonical order."""
+    clouds = [read_las(p) for p in sorted((out / "tiles").glob("*.la?"))]
+    xyz = np.round(np.concatenate([c.xyz for c in clouds]) * 1000).astype(np.int64)
+    t = np.concatenate([c.attrs["gps_time"] for c in clouds])
+    lab = np.concatenate([np.asarray(c.attrs["treeID"]) for c in clouds])
+    order = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0], t))
+    return xyz[order], lab[order]
+
+
+def tree_table(out: Path):
+    return read_gpkg(out / "forest.gpkg", "trees")
+
+
+def assert_same_forest(a: Path, b: Path, min_agreement=0.995):
+    xa, la = labelled_points(a)
+    xb, lb = labelled_points(b)
+    assert np.array_equal(xa, xb)                           # no point lost or duplicated
+    assert (la == lb).mean() >= min_agreement
+    ta, tb = tree_table(a).columns["tree_id"], tree_table(b).columns["tree_id"]
+    assert len(np.unique(ta)) == len(ta) and len(np.unique(tb)) == len(tb)   # no tree twice
+    assert np.array_equal(np.sort(ta), np.sort(tb))         # the same trees, the same IDs
+    return (la == lb).mean()
+
+
+def test_three_by_three_tiles_give_the_trees_of_one_tile(stand, tmp_path):
+    root, scan, whole = stand
+    truth = int(len(np.unique(scan.truth_tree[scan.truth_tree > 0])))
+    assert whole.failures == [] and len(whole.tiles) == 1
+    assert 0.8 * truth <= whole.trees <= 1.2 * truth        # a real segmentation, not a trivial one
+    tiled = run_catalog([root / "three"], tmp_path / "out", FAST)
+    assert len(tiled.tiles) == 9 and tiled.failures == []
+    assert tiled.trees == whole.trees
+    agreement = assert_same_forest(root / "out_one", tmp_path / "out")
+    assert agreement >= 0.995
+    # every owned tree is in exactly one tile's part; the report knows the points
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["points"] == len(scan.cloud) and rep["trees"] == whole.trees
+    assert (tmp_path / "out" / "report.txt").read_text().startswith("Sylva catalog run: 9 tiles")
+    # IDs fit int32 and are derived from the top's position
+    tops = read_gpkg(tmp_path / "out" / "forest.gpkg", "tree_tops")
+    import shapely
+
+    xy = shapely.get_coordinates(tops.geometries)[:, :2]
+    assert np.array_equal(tops.columns["tree_id"], tree_ids(grid_keys(xy)))
+    assert tops.columns["tree_id"].max() < 2 ** 31
+
+
+def test_rerun_skips_complete_tiles_and_redoes_a_changed_one(stand, tmp_path):
+    root, _, _ = stand
+    src = tmp_path / "tiles"
+    shutil.copytree(root / "three", src)
+    first = run_catalog([src], tmp_path / "out", FAST)
+    assert first.skipped == []
+    again = run_catalog([src], tmp_path / "out", FAST)
+    assert sorted(again.skipped) == sorted(r["name"] for r in first.tiles)
+    assert again.trees == first.trees
+    # a changed input invalidates that tile and the neighbours that read it as a buffer
+    cloud = read_las(src / "t_0_0.las")
+    write_las(src / "t_0_0.las", cloud.subset(np.arange(len(cloud)) % 2 == 0))
+    third = run_catalog([src], tmp_path / "out", FAST)
+    redone = {r["name"] for r in third.tiles} - set(third.skipped)
+    assert {"t_0_0", "t_0_1", "t_1_0", "t_1_1"} <= redone and "t_2_2" not in redone
+
+
+def test_corrupt_tile_is_reported_not_fatal(stand, tmp_path):
+    root, _, _ = stand
+    src = tmp_path / "tiles"
+    shutil.copytree(root / "three", src)
+    data = (src / "t_2_2.las").read_bytes()
+    (src / "t_2_2.las").write_bytes(data[: len(data) // 2])        # truncated: header fine, points missing
+    (src / "junk.las").write_bytes(b"this is not a LAS file at all" * 10)
+    rep = run_catalog([src], tmp_path / "out", FAST)
+    failed = {f["name"]: f for f in rep.failures}
+    assert set(failed) == {"t_2_2", "junk"}
+    assert "truncated" in failed["t_2_2"]["reason"] and "junk.las" in failed["junk"]["reason"]
+    assert len(rep.tiles) == 8 and rep.trees > 0
+    text = (tmp_path / "out" / "report.txt").read_text()
+    assert "FAILED t_2_2" in text and "FAILED junk" in text
+
+
+def test_failing_tile_is_retried_once_then_reported(stand, tmp_path, monkeypatch):
+    import sylva.core.catalog as catalog
+
+    root, _, _ = stand
+    real = catalog.process_tile
+    calls = []
+
+    def flaky(job, **kw):
+        calls.append((job.name, job.attempt))
+        if job.name == "t_1_1" and job.attempt == 1:
+            raise RuntimeError("worker lost")      # transient: the retry succeeds
+        if job.name == "t_0_2":
+            raise MemoryError("out of memory")     # persistent: reported after two attempts
+        return real(job, **kw)
+
+    monkeypatch.setattr(catalog, "process_tile", flaky)
+    rep = run_catalog([root / "three"], tmp_path / "out", FAST)
+    assert ("t_1_1", 2) in calls and ("t_0_2", 2) in calls and ("t_0_2", 3) not in calls
+    assert [(f["name"], f["attempts"]) for f in rep.failures] == [("t_0_2", 2)]
+    assert "MemoryError" in rep.failures[0]["reason"] and len(rep.tiles) == 8
+
+
+def test_worker_count_does_not_change_the_result(stand, tmp_path):
+    root, _, _ = stand
+    rep = run_catalog([root / "three"], tmp_path / "out", FAST, workers=2)
+    assert len({r["pid"] for r in rep.tiles}) == 2                   # really two processes
+    assert assert_same_forest(root / "out_one", tmp_path / "out") >= 0.995
+    assert rep.peak_rss_mb_per_worker and all(v > 0 for v in rep.peak_rss_mb_per_worker.values())
+
+
+def test_vpc_input(stand, tmp_path):
+    root, _, _ = stand
+    tiles, failures = list_tiles([root / "three"])
+    assert failures == []
+    vpc = write_vpc(tmp_path / "survey.vpc", tiles[:4], crs=read_las(tiles[0].path).crs)
+    listed = read_vpc(vpc)
+    assert [p for p, _ in listed] == [t.path for t in tiles[:4]]
+    assert listed[0][1] == pytest.approx(tiles[0].bounds)
+    doc = json.loads(vpc.read_text())
+    assert doc["type"] == "FeatureCollection" and "proj:bbox" in doc["features"][0]["properties"]
+    rep = run_catalog([vpc], tmp_path / "out", FAST)
+    assert len(rep.tiles) == 4 and rep.failures == [] and rep.trees > 0
+    # a .vpc as PDAL wrench / QGIS write it (STAC ItemCollection, relative hrefs, proj:bbox)
+    folder = tmp_path / "survey"
+    shutil.copytree(root / "three", folder)
+    feats = [{"type": "Feature", "stac_version": "1.0.0", "id": t.name, "geometry": None,
+              "bbox": [t.bounds[0], t.bounds[1], 0.0, t.bounds[2], t.bounds[3], 100.0],
+              "properties": {"datetime": "2024-01-01T00:00:00Z", "pc:count": t.points, "proj:epsg": 32632,
+                             "proj:bbox": [t.bounds[0], t.bounds[1], 0.0, t.bounds[2], t.bounds[3], 100.0]},
+              "links": [], "assets": {"data": {"href": f"./{Path(t.path).name}", "roles": ["data"]}}}
+             for t in tiles]
+    (folder / "all.vpc").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    listed = read_vpc(folder / "all.vpc")
+    assert len(listed) == 9 and listed[4][1] == pytest.approx(tiles[4].bounds)
+    rep = run_catalog([folder / "all.vpc"], tmp_path / "out9", FAST)
+    assert len(rep.tiles) == 9 and rep.trees == stand[2].trees
+
+
+def test_tree_ids_are_stable_and_collisions_resolved_run_wide(stand, tmp_path):
+    rng = np.random.default_rng(0)
+    keys = rng.integers(-10 ** 9, 10 ** 9, size=(300, 2))
+    perm = rng.permutation(len(keys))
+    with pytest.raises(InputError, match="do not fit"):
+        tree_ids(keys, bits=8)                            # 300 trees, 255 IDs
+    small = keys[:150]                                    # 150 trees in 255 IDs: collisions certain
+    assert len(np.unique(tree_ids(small, bits=31))) == 150
+    ids = tree_ids(small, bits=8)
+    assert len(np.unique(ids)) == 150 and ids.min() > 0 and ids.max() < 256
+    p = perm[perm < 150]
+    assert np.array_equal(tree_ids(small[p], bits=8), ids[p])          # order does not matter
+    # a whole run with 9-bit IDs (many collisions): tiled and single give the same IDs
+    root, _, _ = stand
+    opts = PipelineOptions(reconstruct=False, id_bits=9)
+    one = run_catalog([root / "one"], tmp_path / "one", opts)
+    three = run_catalog([root / "three"], tmp_path / "three", opts)
+    assert one.trees == three.trees
+    assert assert_same_forest(tmp_path / "one", tmp_path / "three") >= 0.995
+
+
+def test_dask_local_cluster(stand, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    root, _, _ = stand
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        rep = run_catalog([root / "three"], tmp_path / "out", FAST, scheduler=client)
+    assert rep.failures == [] and len(rep.tiles) == 9
+    assert assert_same_forest(root / "out_one", tmp_path / "out") >= 0.995
