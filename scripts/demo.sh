@@ -11,18 +11,15 @@ out="$root/demo-output"
 sample="$root/resources/sample/sample.laz"
 mkdir -p "$out"
 run() { qgis_process.bin run "$@" 2>&1 | grep -v -e "setapi() is deprecated" -e "^$"; }
+# The main job: tiles -> trees -> 3D models (one tile here; give a folder or a .vpc for many).
+run sylva:pipeline --INPUT="$sample" --OUTPUT_FOLDER="$out/forest"
 run sylva:canopyheightmodel --INPUT="$sample" --RESOLUTION_M=0.5 --PIT_FREE=true --OUTPUT="$out/chm.tif"
-run sylva:treetops --INPUT="$sample" --WINDOW=1 --MIN_HEIGHT_M=2 --OUTPUT="$out/tree_tops.gpkg"
-run sylva:segmenttrees --INPUT="$sample" --METHOD=0 --OUTPUT="$out/segmented.laz" \
-    --TREE_TOPS="$out/seg_tree_tops.gpkg" --CROWNS="$out/crowns.gpkg" --CROWN_POINTS="$out/crown_points.gpkg" \
-    --STEM_POINTS="$out/stem_points.gpkg" --TREES="$out/trees.gpkg"
-run sylva:reconstructtrees --INPUT="$out/segmented.laz" --METHOD=0 --LOD=0 --MODELS="$out/trees.glb" \
-    --SKELETONS="$out/skeletons.gpkg" --TREES="$out/trees_models.gpkg"
+run sylva:exportmodels --INPUT="$out/forest/models/sample.glb" --CITYGML="$out/trees.gml" --OBJ="$out/trees.obj"
 echo
 echo "Outputs are in $out:"
-echo "  chm.tif            canopy height model (m above ground)"
-echo "  tree_tops.gpkg     local-maximum tree tops"
-echo "  segmented.laz      the sample tile with a treeID per point (normalised cut, Hu et al. 2017)"
-echo "  crowns.gpkg, crown_points.gpkg, stem_points.gpkg, seg_tree_tops.gpkg, trees.gpkg"
-echo "  trees.glb          a georeferenced 3D model of every tree (Hu et al. 2017 / Guo et al. 2018)"
-echo "  skeletons.gpkg     branch skeletons (radius as M), trees_models.gpkg: the trees table with DBH, volume..."
+echo "  forest/forest.gpkg   trees table, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d"
+echo "  forest/tiles/        the tile with a treeID per point (normalised cut, Hu et al. 2017)"
+echo "  forest/models/       a georeferenced GLB per tile and a 3D Tiles tileset (Cesium, QGIS >= 3.34)"
+echo "  forest/report.txt    what was done: tiles, trees, failures, time"
+echo "  chm.tif              pit-free canopy height model (m above ground)"
+echo "  trees.gml, trees.obj the same models as CityGML 2.0 and OBJ (for Blender)"
