@@ -12,7 +12,7 @@ enclosing circle; "tls": surface-normal axis + least-squares circles):
   distance from the points to the model surface (cm), share of points within
   2 cm, DBH / height / volume errors against the truth, time per tree, per
   step and per 1,000 points;
-* the TLS trees of /work/shared/data/tls (if present): the same surface
+* the TLS trees of ../shared/data/tls (if present): the same surface
   figures and times, and the QSM measurements (no truth for them);
 * the segmentation time on 34,542 and 217,187 points (TLS tree 7 resampled
   along its kNN segments), against Yan et al.'s Table 1 (5.94 s and 215.2 s).

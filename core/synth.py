@@ -24,7 +24,7 @@ extra dimensions ``true_tree`` and ``true_kind``) plus a CSV table of the
 trees; :func:`read_truth` reads that table back.  :func:`preset` gives the
 "open", "medium" and "dense" stands the benchmarks use.
 
-No paper of the project specification (``/work/shared/papers``) describes a
+No paper of the project specification (``../shared/papers``) describes a
 simulator; the relations used here come from the forestry and LiDAR
 literature and are cited where they are used:
 

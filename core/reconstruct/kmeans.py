@@ -2,7 +2,7 @@
 
 Yan, Wintz, Mourrain, Wang, Boudon & Godin (2009), "Efficient and robust
 reconstruction of botanical branching structure from laser scanned points"
-(``/work/shared/papers/yan2009_variational_kmeans_branching.txt``), three steps:
+(``../shared/papers/yan2009_variational_kmeans_branching.txt``), three steps:
 
 1. **Segmentation** (§2, :func:`segment`): a kd-tree kNN graph (k = 8, §2.1);
    clusters grown from seeds and refined by Lloyd iterations on the energy of
@@ -958,7 +958,7 @@ def _skeleton_from(st: BranchStructure, verts, vrad) -> Skeleton:
 #: Median distance (m) from a point to its 8th nearest neighbour at or under
 #: which a tree counts as densely sampled.  Airborne scans of 20 / 100 / 400
 #: pulses/m² (core.synth) put it at 0.57–0.81 / 0.27–0.41 / 0.14–0.23 m; the
-#: TLS trees of /work/shared/data/tls at 0.03–0.19 m.
+#: TLS trees of ../shared/data/tls at 0.03–0.19 m.
 DENSE_SPACING_M = 0.25
 #: Share of the points within ``DENSE_LOW_M`` above the tree's lowest point at
 #: or above which the lower stem is seen, as from the ground.  Airborne trees
