@@ -46,29 +46,11 @@ def _methods(args):
             "dense": (dense, None), "auto": (hybrid, dense)}[args["METHOD"]]
 
 
-def skeleton_table(trees, cloud, crs) -> VectorTable:
-    """One MultiLineStringZM per tree: each part a branch chain, M = radius (m), CRS coordinates."""
-    from ..core.geometry import branches
-    from ..core.table import multilinestring_zm_wkb
-
-    wkb, ids, n_branches = [], [], []
-    for t in trees:
-        sk = t.skeleton
-        chains = [c for c in branches(sk, sk.radius) if len(c) >= 2]
-        parts = [np.column_stack([cloud.from_local(sk.nodes[c]), sk.radius[c]]) for c in chains]
-        wkb.append(multilinestring_zm_wkb(parts))
-        ids.append(t.tree_id)
-        n_branches.append(len(parts))
-    return VectorTable("skeletons", LINE, np.array(wkb, dtype=object),
-                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_branches, dtype=np.int64)},
-                       crs, has_m=True)
-
-
 def run(args: dict, feedback: Feedback) -> Result:
     from ..core.errors import InputError
     from ..core.export.gltf import write_glb
     from ..core.export.model import ExportFrame, TreeModel
-    from ..core.forest import ModelOptions, model_trees
+    from ..core.forest import ModelOptions, model_trees, skeleton_table
     from ..core.measure import tree_metrics
     from ..core.terrain import normalize
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from typing import Any, List
 
 import numpy as np
 
@@ -146,3 +146,21 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
         out.append(ModelledTree(int(tree_id), base, skeleton, wood, leaves, record))
     report(progress, 1.0, "trees modelled")
     return out
+
+
+def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
+    """One MultiLineStringZM per tree: each part a branch chain, M = radius (m), CRS coordinates."""
+    from .geometry import branches
+    from .table import VectorTable, multilinestring_zm_wkb
+
+    wkb, ids, n_chains = [], [], []
+    for t in trees:
+        sk = t.skeleton
+        chains = [c for c in branches(sk, sk.radius) if len(c) >= 2]
+        parts = [np.column_stack([cloud.from_local(sk.nodes[c]), sk.radius[c]]) for c in chains]
+        wkb.append(multilinestring_zm_wkb(parts))
+        ids.append(t.tree_id)
+        n_chains.append(len(parts))
+    return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
+                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_chains, dtype=np.int64)},
+                       crs if crs is not None else cloud.crs, has_m=True)

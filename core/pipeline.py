@@ -365,7 +365,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         from .export.gltf import write_glb
         from .export.model import ExportFrame, TreeModel
         from .export.tiles3d import write_tileset
-        from .forest import ModelOptions, model_trees
+        from .forest import ModelOptions, model_trees, skeleton_table
         from .reconstruct import Hybrid
 
         method = opts.reconstruction if opts.reconstruction is not None else Hybrid()
@@ -385,7 +385,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         write_tileset(models, tileset_dir, frame, cancelled=cancelled)
         files["glb"] = str(paths["glb"])
         files["tileset"] = str(tileset_dir / "tileset.json")
-        skeletons = _skeleton_table(trees, work, crs)
+        skeletons = skeleton_table(trees, work, crs)
         try:  # the QGIS-native 3D layer (core/export/gpkg3d.py), merged like the other layers
             from .export.gpkg3d import models_table
         except ImportError:
@@ -425,24 +425,6 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     atomic_write_bytes(paths["manifest"], (json.dumps(record, indent=1) + "\n").encode("utf-8"))
     report(progress, 1.0, f"{job.name}: {record['trees']} trees")
     return record
-
-
-def _skeleton_table(trees, cloud, crs):
-    """One MultiLineStringZM per tree (parts = branch chains, M = radius in m), CRS coordinates."""
-    from .geometry import branches
-    from .table import VectorTable, multilinestring_zm_wkb
-
-    wkb, ids, n_chains = [], [], []
-    for t in trees:
-        sk = t.skeleton
-        chains = [c for c in branches(sk, sk.radius) if len(c) >= 2]
-        parts = [np.column_stack([cloud.from_local(sk.nodes[c]), sk.radius[c]]) for c in chains]
-        wkb.append(multilinestring_zm_wkb(parts))
-        ids.append(t.tree_id)
-        n_chains.append(len(parts))
-    return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
-                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_chains, dtype=np.int64)},
-                       crs, has_m=True)
 
 
 def is_complete(job: TileJob) -> Optional[dict]:
