@@ -26,13 +26,21 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-def qgis_process_binary() -> str:
-    """The qgis_process that works headless (the Debian wrapper script does not, see README)."""
-    for name in ("qgis_process.bin", "qgis_process"):
-        found = shutil.which(name)
-        if found:
-            return found
-    pytest.skip("qgis_process is not installed")
+def qgis_process(*args, timeout: int = 300):
+    """Run headless qgis_process with this checkout's profile (scripts/setup.sh enables the plugin).
+
+    Debian's /usr/bin/qgis_process wrapper fails on every command, so qgis_process.bin is preferred."""
+    import subprocess
+
+    binary = shutil.which("qgis_process.bin") or shutil.which("qgis_process")
+    if binary is None:
+        pytest.skip("qgis_process is not installed")
+    profile = ROOT / ".qgis-profile"
+    if not profile.exists():
+        pytest.skip("run scripts/setup.sh first: it enables the plugin in .qgis-profile")
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", QGIS_PLUGINPATH=str(ROOT / ".qgis-plugins"),
+               QGIS_CUSTOM_CONFIG_PATH=str(profile))
+    return subprocess.run([binary, *args], capture_output=True, text=True, env=env, timeout=timeout)
 
 
 @pytest.fixture()

@@ -1,13 +1,12 @@
 """sylva:pipeline as an algorithm, and the single-tile Graphical Modeler model run by qgis_process."""
 import json
 import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import ROOT, qgis_process_binary
+from conftest import ROOT, qgis_process
 
 MODEL = ROOT / "resources" / "models" / "sylva_single_tile.model3"
 CHAIN = ["normalise", "segment", "reconstruct", "export"]
@@ -138,16 +137,6 @@ def test_shipped_model_is_the_chain(sylva_provider, tmp_path):
         assert src.outputChildId() == up
     ok, issues = model.validate()
     assert ok, issues
-
-
-def qgis_process(*args):
-    env = dict(os.environ)
-    profile = ROOT / ".qgis-profile"
-    if not profile.exists():
-        pytest.skip("run scripts/setup.sh first: it enables the plugin in .qgis-profile")
-    env.update(QT_QPA_PLATFORM="offscreen", QGIS_PLUGINPATH=str(ROOT / ".qgis-plugins"),
-               QGIS_CUSTOM_CONFIG_PATH=str(profile))
-    return subprocess.run([qgis_process_binary(), *args], capture_output=True, text=True, env=env, timeout=300)
 
 
 @pytest.mark.qgis

@@ -1,11 +1,8 @@
 """Headless `qgis_process`, as users run batches: the provider loads, algorithms run, errors are clear."""
-import os
-import subprocess
-from pathlib import Path
 
 import pytest
 
-from conftest import ROOT, SAMPLE_TRUTH, qgis_process_binary
+from conftest import ROOT, SAMPLE_TRUTH, qgis_process
 from badfiles import make_bad_inputs
 
 pytestmark = pytest.mark.qgis
@@ -19,16 +16,6 @@ def metrics():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-def qgis_process(*args):
-    env = dict(os.environ)
-    profile = ROOT / ".qgis-profile"
-    if not profile.exists():
-        pytest.skip("run scripts/setup.sh first: it enables the plugin in .qgis-profile")
-    env.update(QT_QPA_PLATFORM="offscreen", QGIS_PLUGINPATH=str(ROOT / ".qgis-plugins"),
-               QGIS_CUSTOM_CONFIG_PATH=str(profile))
-    return subprocess.run([qgis_process_binary(), *args], capture_output=True, text=True, env=env, timeout=300)
 
 
 def test_list_shows_sylva_algorithms():
