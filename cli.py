@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _metavar(p: S.Param) -> str:
     return {S.NUMBER: "NUMBER", S.INTEGER: "INT", S.BOOLEAN: "true|false", S.ENUM: "|".join(p.options),
-            S.FILE: "FILE", S.CRS: "CRS"}.get(p.kind, "PATH" if p.is_output else "VALUE")
+            S.FILE: "FILE", S.CRS: "CRS", S.RASTER: "GEOTIFF", S.VECTOR: "GPKG[|layername=NAME]"}.get(p.kind, "PATH" if p.is_output else "VALUE")
 
 
 def _help(p: S.Param) -> str:
@@ -114,6 +114,8 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
             if low not in ("true", "false", "1", "0", "yes", "no"):
                 raise ValueError
             return low in ("true", "1", "yes")
+        elif p.kind == S.VECTOR:
+            return _vector(alg, p, value)
         elif p.kind == S.ENUM:
             if value in p.options:
                 return value
@@ -125,6 +127,17 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
     if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
         raise InputError(f"{alg.id}: --{p.name}={value} is outside [{p.minimum}, {p.maximum}]")
     return v
+
+
+def _vector(alg: S.Algorithm, p: S.Param, value: str):
+    """A VECTOR input: the GeoPackage layer ``value`` names, as a VectorTable of the required geometry type."""
+    from .core.io.gpkg import read_layer
+
+    table = read_layer(value)
+    if p.geometry != S.NO_GEOMETRY and table.geometry_type != p.geometry:
+        raise InputError(f"{alg.id}: --{p.name}={value} holds {table.geometry_type} geometries; "
+                         f"{p.description} needs {p.geometry}s")
+    return table
 
 
 def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:

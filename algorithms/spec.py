@@ -26,6 +26,10 @@ BOOLEAN = "boolean"
 ENUM = "enum"            # one of `options`; run() receives the option's name
 CRS = "crs"              # any string pyproj understands ("EPSG:26912", WKT), optional
 STRING = "string"
+RASTER = "raster"        # a raster layer; run() receives the path of its file (GeoTIFF)
+VECTOR = "vector"        # a vector layer; run() receives a core.table.VectorTable (shapely geometries,
+                         # columns, crs) read from the layer, or None when optional and absent;
+                         # `geometry` restricts the accepted type (point/line/polygon)
 # Output kinds
 RASTER_OUT = "raster_out"   # GeoTIFF path
 VECTOR_OUT = "vector_out"   # a layer: a feature sink in QGIS, a GeoPackage from the CLI
@@ -49,7 +53,7 @@ class Param:
     maximum: Optional[float] = None
     options: Tuple[str, ...] = ()
     file_filter: str = ""          # Qt-style, e.g. "LAS/LAZ (*.las *.laz)"
-    geometry: str = POINT           # for VECTOR_OUT
+    geometry: str = POINT           # for VECTOR_OUT and VECTOR
     help: str = ""                  # one or two sentences for the user
     advanced: bool = False
     style: str = ""                 # VECTOR_OUT: a .qml in resources/styles applied when QGIS loads the layer

@@ -27,11 +27,13 @@ from qgis.core import (
     QgsProcessingParameterDefinition,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFeatureSink,
+    QgsProcessingParameterFeatureSource,
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterFolderDestination,
     QgsProcessingParameterNumber,
     QgsProcessingParameterRasterDestination,
+    QgsProcessingParameterRasterLayer,
     QgsProcessingParameterString,
     QgsWkbTypes,
 )
@@ -97,6 +99,10 @@ def qgs_parameter(p: S.Param):
         q = QgsProcessingParameterCrs(p.name, p.description, p.default, True)
     elif k == S.STRING:
         q = QgsProcessingParameterString(p.name, p.description, p.default, False, p.optional)
+    elif k == S.RASTER:
+        q = QgsProcessingParameterRasterLayer(p.name, p.description, None, p.optional)
+    elif k == S.VECTOR:
+        q = QgsProcessingParameterFeatureSource(p.name, p.description, [_SINK_TYPES[p.geometry]], None, p.optional)
     elif k == S.RASTER_OUT:
         q = QgsProcessingParameterRasterDestination(p.name, p.description, None, p.optional)
     elif k == S.VECTOR_OUT:
@@ -120,6 +126,43 @@ def to_qgs_crs(crs) -> QgsCoordinateReferenceSystem:
     if epsg:
         return QgsCoordinateReferenceSystem(f"EPSG:{epsg}")
     return QgsCoordinateReferenceSystem.fromWkt(crs.to_wkt())
+
+
+def vector_table(source, p: S.Param):
+    """A QgsFeatureSource as a core VectorTable (shapely geometries, attribute columns, pyproj CRS)."""
+    import numpy as np
+    import pyproj
+    import shapely
+
+    names = [f.name() for f in source.fields()]
+    geoms, rows = [], []
+    for feature in source.getFeatures():
+        g = feature.geometry()
+        if g is None or g.isNull():
+            geoms.append(None)
+        else:
+            g = QgsGeometry(g.constGet().clone())
+            g.get().dropMValue()  # shapely has no M
+            geoms.append(shapely.from_wkb(bytes(g.asWkb())))
+        rows.append([None if v is None or (hasattr(v, "isNull") and v.isNull()) else v
+                     for v in feature.attributes()])
+    columns = {}
+    for i, name in enumerate(names):
+        vals = [r[i] for r in rows]
+        if vals and all(isinstance(v, int) and not isinstance(v, bool) for v in vals):
+            columns[name] = np.array(vals, dtype=np.int64)
+        elif vals and all(isinstance(v, (int, float)) or v is None for v in vals):
+            columns[name] = np.array([np.nan if v is None else float(v) for v in vals])
+        else:
+            columns[name] = np.array([None if v is None else str(v) for v in vals], dtype=object)
+    crs = source.sourceCrs()
+    pcrs = pyproj.CRS.from_wkt(crs.toWkt(QgsCoordinateReferenceSystem.WKT_PREFERRED)) if crs.isValid() else None
+    gtype = {QgsWkbTypes.PointGeometry: S.POINT, QgsWkbTypes.LineGeometry: S.LINE,
+             QgsWkbTypes.PolygonGeometry: S.POLYGON}.get(QgsWkbTypes.geometryType(source.wkbType()), S.NO_GEOMETRY)
+    from ..core.table import VectorTable
+
+    return VectorTable(p.name.lower(), gtype, np.array(geoms, dtype=object) if gtype != S.NO_GEOMETRY else None,
+                       columns, pcrs, has_z=QgsWkbTypes.hasZ(source.wkbType()))
 
 
 class SylvaAlgorithm(QgsProcessingAlgorithm):
@@ -166,6 +209,12 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
             return (crs.authid() or crs.toWkt()) if crs.isValid() else None
         if k == S.STRING:
             return self.parameterAsString(parameters, p.name, context)
+        if k == S.RASTER:
+            layer = self.parameterAsRasterLayer(parameters, p.name, context)
+            return layer.source() if layer is not None else None
+        if k == S.VECTOR:
+            source = self.parameterAsSource(parameters, p.name, context)
+            return vector_table(source, p) if source is not None else None
         if k == S.RASTER_OUT:
             return self.parameterAsOutputLayer(parameters, p.name, context)
         if k in (S.FILE_OUT, S.FOLDER_OUT):

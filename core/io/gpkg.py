@@ -180,11 +180,12 @@ def read_gpkg(path, layer: str) -> VectorTable:
             geom_col, name = con.execute(
                 "SELECT column_name, geometry_type_name FROM gpkg_geometry_columns WHERE table_name=?",
                 (layer,)).fetchone()
-            gtype = {"POINT": "point", "MULTILINESTRING": "line", "LINESTRING": "line",
-                     "POLYGON": "polygon", "MULTIPOLYGON": "polygon"}.get(name.upper(), "polygon")
+            gtype = _geometry_kind(name)
         cur = con.execute(f'SELECT * FROM "{layer}" ORDER BY fid')
         names = [d[0] for d in cur.description]
         rows = cur.fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"{path}: cannot read layer {layer!r} as a GeoPackage layer ({exc})") from None
     finally:
         con.close()
     columns = {}
@@ -196,6 +197,50 @@ def read_gpkg(path, layer: str) -> VectorTable:
         elif name != "fid":
             columns[name] = _column(vals)
     return VectorTable(layer, gtype, geoms, columns, crs)
+
+
+def _geometry_kind(name: str) -> str:
+    """"point" | "line" | "polygon" for a GeoPackage geometry type name (MULTI- and Z/M forms too)."""
+    name = name.upper()
+    for word, kind in (("POINT", "point"), ("LINE", "line"), ("CURVE", "line"), ("POLYGON", "polygon"),
+                       ("SURFACE", "polygon")):
+        if word in name:
+            return kind
+    return "polygon"
+
+
+def layer_names(path) -> List[str]:
+    """The names of the feature and attribute layers of a GeoPackage, in file order."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            rows = con.execute("SELECT table_name FROM gpkg_contents "
+                               "WHERE data_type IN ('features', 'attributes') ORDER BY rowid").fetchall()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"{path}: not a GeoPackage ({exc})") from None
+    return [r[0] for r in rows]
+
+
+def read_layer(source: str) -> VectorTable:
+    """A vector layer named as QGIS names it: ``file.gpkg`` (its only layer) or ``file.gpkg|layername=NAME``."""
+    path, _, options = str(source).partition("|")
+    layer = None
+    for option in filter(None, options.split("|")):
+        key, _, value = option.partition("=")
+        if key.strip().lower() == "layername":
+            layer = value.strip()
+    if layer is None:
+        names = layer_names(path)
+        if len(names) != 1:
+            raise InputError(f"{path}: holds {len(names)} layers ({', '.join(names) or 'none'}); "
+                             f"name one as {path}|layername=NAME")
+        layer = names[0]
+    return read_gpkg(path, layer)
 
 
 def _strip_header(blob: bytes) -> bytes:
