@@ -33,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import sqlite3
 import sys
 import time
@@ -181,12 +182,13 @@ def make_jobs(tiles: Sequence[Tile], out_dir, options: PipelineOptions) -> List[
     for i, t in enumerate(tiles):
         pad = options.buffer_m / t.metres_per_unit
         box = (t.bounds[0] - pad, t.bounds[1] - pad, t.bounds[2] + pad, t.bounds[3] + pad)
-        neighbours = tuple((j, u.path, u.bounds) for j, u in enumerate(tiles)
+        neighbours = tuple((j, u.path, u.bounds, sums[u.path]) for j, u in enumerate(tiles)
                            if j != i and not (u.bounds[2] < box[0] or u.bounds[0] > box[2]
                                               or u.bounds[3] < box[1] or u.bounds[1] > box[3]))
         key = hashlib.sha256("|".join([options.key(), sums[t.path]] +
-                                      [f"{Path(p).name}:{sums[p]}" for _, p, _ in neighbours]).encode()).hexdigest()[:24]
-        jobs.append(TileJob(i, t.name, t.path, t.bounds, neighbours, str(out_dir), options, key))
+                                      [f"{Path(p).name}:{sums[p]}" for _, p, _, _ in neighbours]).encode()).hexdigest()[:24]
+        jobs.append(TileJob(i, t.name, t.path, t.bounds, neighbours, str(out_dir), options, key,
+                            file_checksum=sums[t.path]))
     return jobs
 
 
@@ -197,11 +199,11 @@ def _failure(job: TileJob, err: BaseException) -> dict:
     return {"name": job.name, "path": job.path, "status": "failed", "reason": reason, "attempts": job.attempt}
 
 
-def _run_serial(jobs, on_done, cancelled):
+def _run_serial(jobs, on_done, cancelled, tile_progress=lambda job: None):
     for job in jobs:
         check(cancelled)
         try:
-            on_done(job, process_tile(job, cancelled=cancelled), None)
+            on_done(job, process_tile(job, progress=tile_progress(job), cancelled=cancelled), None)
         except Cancelled:
             raise
         except Exception as err:  # noqa: BLE001 — a tile's failure is reported, never fatal
@@ -221,25 +223,55 @@ def _pool_context():
     return ctx
 
 
-def _run_pool(jobs, workers, on_done, cancelled):
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+class WorkerDied(SylvaError):
+    """The process working on a tile died (killed for memory, or a crash in native code)."""
 
-    with ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context()) as pool:
-        pending = {pool.submit(process_tile, job): job for job in jobs}
-        try:
-            while pending:
-                done, _ = wait(list(pending), timeout=0.5, return_when=FIRST_COMPLETED)
-                check(cancelled)
-                for fut in done:
-                    job = pending.pop(fut)
-                    err = fut.exception()
-                    retry = on_done(job, None if err else fut.result(), err)
-                    if retry is not None:
-                        pending[pool.submit(process_tile, retry)] = retry
-        except BaseException:
-            for fut in pending:
-                fut.cancel()
-            raise
+
+def _run_pool(jobs, workers, on_done, cancelled, work=process_tile):
+    """Run ``work(job)`` in a process pool, at most ``workers`` tiles in flight.
+
+    A worker that dies breaks the whole pool (``BrokenProcessPool`` for every
+    tile in flight): those tiles are then rerun one at a time in a pool of
+    their own, which finds the culprit — reported as :class:`WorkerDied`, not
+    retried — and clears the innocent; the other tiles go on in a new pool.
+    """
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    queue, suspects = deque(jobs), deque()
+    while queue or suspects:
+        alone = bool(suspects)
+        source, size = (suspects, 1) if alone else (queue, workers)
+        pending = {}
+        with ProcessPoolExecutor(max_workers=size, mp_context=_pool_context()) as pool:
+            try:
+                broken = False
+                while pending or (source and not broken):
+                    while source and not broken and len(pending) < size:
+                        job = source.popleft()
+                        pending[pool.submit(work, job)] = job
+                    done, _ = wait(list(pending), timeout=0.5, return_when=FIRST_COMPLETED)
+                    check(cancelled)
+                    for fut in done:
+                        job = pending.pop(fut)
+                        err = fut.exception()
+                        if isinstance(err, BrokenProcessPool):
+                            broken = True
+                            if alone:
+                                on_done(replace(job, attempt=max(job.attempt, 2)), None, WorkerDied(
+                                    f"{job.path}: the process working on this tile died (out of memory, "
+                                    "or a crash in a native library)"))
+                            else:
+                                suspects.append(job)
+                            continue
+                        retry = on_done(job, None if err else fut.result(), err)
+                        if retry is not None:
+                            source.appendleft(retry)
+            except BaseException:
+                for fut in pending:
+                    fut.cancel()
+                raise
 
 
 def _run_dask(jobs, scheduler, on_done, cancelled):
@@ -522,7 +554,10 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
         elif workers > 1:
             _run_pool(todo, workers, on_done, cancelled)
         else:
-            _run_serial(todo, on_done, cancelled)
+            def tile_progress(job):
+                return lambda f, message="": report(progress, 0.9 * (state["done"] + f) / total, message)
+
+            _run_serial(todo, on_done, cancelled, tile_progress)
     check(cancelled)
     report(progress, 0.9, "merging")
     done = [records[j.name] for j in jobs if j.name in records]
@@ -540,6 +575,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     if done:
         gpkg = merge_gpkg([part_paths(out, r["name"])["gpkg"] for r in done], out / "forest.gpkg",
                           [maps.get(r["name"], {}) for r in done])
+    shutil.rmtree(out / "parts" / "halo", ignore_errors=True)  # scratch: a rerun makes what it needs
     tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
     root = write_root_tileset(out / "models", tilesets) if tilesets else None
     peaks: Dict[str, float] = {}

@@ -10,9 +10,16 @@ tile is either complete or redone.
 Rules (the design of ARCHITECTURE.md, catalog.py; lidR's catalog engine):
 
 * The tile is read whole; every neighbour whose header bounds meet the
-  buffered box (tile bounds grown by ``buffer_m``) is streamed chunk by chunk
-  (:func:`sylva.core.io.las.read_las_chunks`) and only its points inside the
-  box are kept: memory is one tile plus its buffer.
+  buffered box (tile bounds grown by ``buffer_m``) gives its points inside the
+  box: memory is one tile plus its buffer.  They come from the neighbour's
+  *halo* (``parts/halo/``: its points within ``buffer_m`` of its own edges,
+  uncompressed, written by the first job that reads the neighbour's file — its
+  own or another's) or, while no halo exists yet, from the neighbour's file
+  streamed chunk by chunk (:func:`sylva.core.io.las.read_las_chunks`).  So a
+  LAZ tile is decompressed about twice in a run, not once per neighbour
+  (nine times on a grid).  Halos are keyed by the file's checksum, the buffer
+  and the CRS, and are used only between tiles whose bounds do not overlap
+  (only then is the part of a neighbour inside a buffer within its edge ring).
 * Computation happens in a local frame whose origin is *snapped to a global
   grid* (:data:`ANCHOR_GRID_M`, a common multiple of the voxel, cell and window
   pitches used downstream), not at the tile's lower-left corner: voxels and
@@ -84,7 +91,8 @@ class PipelineOptions:
     the widest crown).  ``segmentation``: a method value of
     :func:`sylva.core.segment.segment_trees` (default Hu et al. 2017 §4.1
     normalised cut).  ``window_diameter_m``/``min_height_m``: tree-top local
-    maximum filter.  ``reconstruct``: model every owned tree (skeletons, GLB, 3D
+    maximum filter.  ``ground_cell_m``: ground points are reduced to the lowest
+    per cell of this size before the TIN of heights (a fine DTM; 0 keeps all).  ``reconstruct``: model every owned tree (skeletons, GLB, 3D
     Tiles) with ``reconstruction`` (default :class:`sylva.core.reconstruct.Hybrid`),
     ``lod`` and ``leaves``.  ``id_bits``: bits of the position-derived tree ID
     (31 for the int32 ``treeID``; smaller only to test collision handling).
@@ -94,6 +102,7 @@ class PipelineOptions:
     segmentation: Any = NormalizedCut()
     window_diameter_m: float = 3.0
     min_height_m: float = 2.0
+    ground_cell_m: float = 0.5
     hull: str = "convex"
     crown_base_gap_m: float = 1.5
     reconstruct: bool = True
@@ -117,11 +126,12 @@ class TileJob:
     name: str
     path: str
     bounds: Tuple[float, float, float, float]            # xmin, ymin, xmax, ymax (CRS units)
-    neighbours: Tuple[Tuple[int, str, Tuple[float, float, float, float]], ...]
+    neighbours: Tuple[Tuple[int, str, Tuple[float, float, float, float], str], ...]  # index, path, bounds, checksum
     out_dir: str
     options: PipelineOptions = field(default_factory=PipelineOptions)
     checksum: str = ""                                   # of this tile + neighbours + options
     attempt: int = 1
+    file_checksum: str = ""                              # of this tile's file alone (names its halo)
 
 
 # --------------------------------------------------------------------------- tree IDs
@@ -198,11 +208,53 @@ def _concat(clouds, anchor) -> AnchoredCloud:
                          units=first.units, source=first.source, template=None, anchor=anchor)
 
 
+def _overlap(a, b) -> bool:
+    """True when two bounds share interior area (touching edges do not count)."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def halo_path(out_dir, file_checksum: str, options) -> Path:
+    """Where the halo of the tile whose file has ``file_checksum`` is kept for ``options``."""
+    key = hashlib.sha256(f"{file_checksum}|{options.buffer_m!r}|{options.crs!r}".encode()).hexdigest()[:20]
+    return Path(out_dir) / "parts" / "halo" / f"{key}.npz"
+
+
+def _halo_mask(cloud: PointCloud, bounds, pad: float) -> np.ndarray:
+    x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+    return ~((x > bounds[0] + pad) & (x < bounds[2] - pad) & (y > bounds[1] + pad) & (y < bounds[3] - pad))
+
+
+def write_halo(path: Path, clouds) -> None:
+    """Save the edge-ring points ``clouds`` (PointClouds of one file) atomically as an uncompressed .npz."""
+    from .atomic import atomic_path
+
+    clouds = [c for c in clouds if len(c)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"xyz": np.concatenate([c.xyz for c in clouds]) if clouds else np.zeros((0, 3))}
+    for name in (clouds[0].attrs if clouds else ()):
+        arrays[f"attr:{name}"] = np.concatenate([np.asarray(c.attrs[name]) for c in clouds])
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
+def read_halo(path: Path, like: PointCloud) -> Optional[PointCloud]:
+    """The halo at ``path`` as a PointCloud in ``like``'s CRS and units, or None if it is absent or unreadable."""
+    try:
+        with np.load(path) as z:
+            xyz = z["xyz"]
+            attrs = {k[5:]: z[k] for k in z.files if k.startswith("attr:")}
+    except (OSError, ValueError, KeyError):
+        return None
+    return PointCloud(xyz=xyz, attrs=attrs, crs=like.crs, units=like.units, source=str(path))
+
+
 def read_buffered(job: TileJob, progress=None, cancelled=None):
     """(own cloud as read, buffered AnchoredCloud with int32 attr ``_tile``, warnings).
 
     The buffered cloud starts with the tile's own points, in file order.
     Unreadable neighbours are left out with a warning (their own job reports them).
+    Writes the halos of the files it reads whole (see the module docstring).
     """
     from .io.las import read_las, read_las_chunks
     from .progress import check
@@ -216,21 +268,40 @@ def read_buffered(job: TileJob, progress=None, cancelled=None):
     box = (xmin - pad, ymin - pad, xmax + pad, ymax + pad)
     grid = ANCHOR_GRID_M / own.units.horizontal_m
     anchor = np.array([np.floor(box[0] / grid) * grid, np.floor(box[1] / grid) * grid, 0.0])
+    if job.file_checksum:
+        mine = halo_path(job.out_dir, job.file_checksum, opts)
+        if not mine.exists():
+            write_halo(mine, [own.subset(_halo_mask(own, job.bounds, pad))])
     parts = [own]
     tiles = [np.full(len(own), job.index, dtype=np.int32)]
     warnings = []
-    for index, path, bounds in job.neighbours:
+
+    def keep(chunk, index):
+        x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+        inside = (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
+        if inside.any():
+            sub = chunk.subset(inside)
+            parts.append(replace(sub, template=None))
+            tiles.append(np.full(len(sub), index, dtype=np.int32))
+
+    for index, path, bounds, checksum in job.neighbours:
         check(cancelled)
         if not _box_hits(bounds, box):
             continue
+        halo = halo_path(job.out_dir, checksum, opts) if checksum and not _overlap(bounds, job.bounds) else None
+        cached = read_halo(halo, own) if halo is not None and halo.exists() else None
+        if cached is not None:
+            keep(cached, index)
+            continue
         try:
+            ring = []
             for chunk in read_las_chunks(path, opts.chunk_size, crs=opts.crs or own.crs):
-                x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
-                inside = (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
-                if inside.any():
-                    sub = chunk.subset(inside)
-                    parts.append(replace(sub, template=None))
-                    tiles.append(np.full(len(sub), index, dtype=np.int32))
+                keep(chunk, index)
+                if halo is not None:
+                    ring.append(replace(chunk.subset(_halo_mask(chunk, bounds, pad)), template=None))
+            if halo is not None:
+                write_halo(halo, ring)
+            del ring
         except SylvaError as err:
             warnings.append(f"neighbour {Path(path).name} left out of the buffer: {err}")
     cloud = _concat(parts, anchor)
@@ -327,7 +398,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     check(cancelled)
     keep = ~noise_mask(cloud)
     kept_idx = np.flatnonzero(keep)
-    work = normalize(cloud.subset(keep), classify=SMRF())
+    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=opts.ground_cell_m)
     report(progress, 0.1, f"{job.name}: tree tops")
     tops = find_tree_tops(work, window=FixedWindow(opts.window_diameter_m), min_height_m=opts.min_height_m,
                           cancelled=cancelled)

@@ -32,3 +32,14 @@ def make_bad_inputs(folder: Path, sample: Path) -> dict:
     nocrs.write(path)
     bad["no_crs"] = (path, "CRS")
     return bad
+
+
+def die_on(name, job):
+    """A catalog worker function that kills its process on the tile called ``name`` (as an OOM kill would)."""
+    import os
+
+    from sylva.core.pipeline import process_tile
+
+    if job.name == name:
+        os._exit(9)
+    return process_tile(job)

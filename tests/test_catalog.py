@@ -208,3 +208,71 @@ def test_dask_local_cluster(stand, tmp_path):
         rep = run_catalog([root / "three"], tmp_path / "out", FAST, scheduler=client)
     assert rep.failures == [] and len(rep.tiles) == 9
     assert assert_same_forest(root / "out_one", tmp_path / "out") >= 0.995
+
+
+def test_halos_give_the_same_buffer_as_reading_the_neighbours(stand, tmp_path):
+    """A neighbour's points in a buffer come from its halo once written: the same points and attributes."""
+    from sylva.core.catalog import make_jobs
+    from sylva.core.pipeline import halo_path, read_buffered
+
+    from dataclasses import replace
+
+    root, _, _ = stand
+    opts = replace(FAST, buffer_m=5.0)   # 20 m tiles: a 5 m ring is less than the whole tile
+    tiles, _ = list_tiles([root / "three"])
+    jobs = make_jobs(tiles, tmp_path, opts)
+    centre = next(j for j in jobs if j.name == "t_1_1")
+    assert len(centre.neighbours) == 8
+    assert not (tmp_path / "parts" / "halo").exists()
+    _, first, _ = read_buffered(centre)            # reads the 8 files, writes their halos and its own
+    halos = sorted((tmp_path / "parts" / "halo").glob("*.npz"))
+    assert len(halos) == 9
+    assert all(halo_path(tmp_path, c, opts).exists() for _, _, _, c in centre.neighbours)
+    # a halo holds the ring within buffer_m of the tile's edges, not the whole tile
+    whole = read_las(root / "three" / "t_0_0.las")
+    with np.load(halo_path(tmp_path, centre.neighbours[0][3], opts)) as z:
+        assert 0 < len(z["xyz"]) < len(whole)
+    _, again, _ = read_buffered(centre)            # now from the halos
+    key = lambda c: np.lexsort(np.round(c.xyz * 1000).T)  # noqa: E731
+    a, b = key(first), key(again)
+    assert np.array_equal(first.xyz[a], again.xyz[b])
+    assert set(first.attrs) == set(again.attrs)
+    for name in first.attrs:
+        assert np.array_equal(np.asarray(first.attrs[name])[a], np.asarray(again.attrs[name])[b]), name
+    # a run leaves no scratch halos behind
+    run_catalog([root / "three"], tmp_path / "run", FAST)
+    assert not (tmp_path / "run" / "parts" / "halo").exists()
+
+
+def test_a_dying_worker_costs_only_its_own_tile(stand, tmp_path):
+    """A worker killed mid-run (out of memory, native crash) breaks the pool; the other tiles still finish."""
+    from functools import partial
+
+    from badfiles import die_on
+    from sylva.core.catalog import WorkerDied, _run_pool, make_jobs
+
+    root, _, _ = stand
+    tiles, _ = list_tiles([root / "three"])
+    jobs = make_jobs(tiles, tmp_path, FAST)
+    outcome = {}
+
+    def on_done(job, record, err):
+        outcome[job.name] = err if err is not None else record
+        return None
+
+    _run_pool(jobs, 2, on_done, None, work=partial(die_on, "t_1_1"))
+    assert sorted(outcome) == sorted(j.name for j in jobs)
+    assert isinstance(outcome["t_1_1"], WorkerDied) and "t_1_1" in str(outcome["t_1_1"])
+    others = [v for k, v in outcome.items() if k != "t_1_1"]
+    assert all(isinstance(r, dict) and r["status"] == "done" for r in others)
+
+
+def test_progress_moves_inside_a_tile(stand, tmp_path):
+    """One big tile must not sit at 0 %: the tile's own steps are reported, in order."""
+    root, _, _ = stand
+    seen = []
+    run_catalog([root / "one"], tmp_path / "out", FAST, progress=lambda f, m="": seen.append((f, m)))
+    inside = [(f, m) for f, m in seen if "segmenting" in m or "tree tops" in m or "measuring" in m]
+    assert len(inside) >= 3 and all(0.0 < f < 0.9 for f, _ in inside)
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
