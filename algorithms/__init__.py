@@ -10,7 +10,7 @@ import importlib
 from typing import Dict
 
 #: Modules that define algorithms, each exporting its Algorithm values in ``ALGORITHMS``.
-MODULES = ("terrain", "tops", "segment", "reconstruct", "export", "pipeline")
+MODULES = ("terrain", "tops", "segment", "reconstruct", "export", "pipeline", "sketch")
 
 _cache: Dict[str, object] = {}
 
