@@ -10,7 +10,7 @@ import importlib
 from typing import Dict
 
 #: Modules that define algorithms, each exporting its Algorithm values in ``ALGORITHMS``.
-MODULES = ("terrain", "tops", "segment", "reconstruct", "export", "pipeline", "sketch")
+MODULES = ("terrain", "tops", "segment", "reconstruct", "export", "pipeline", "sketch", "billboard")
 
 _cache: Dict[str, object] = {}
 

@@ -94,7 +94,8 @@ class PipelineOptions:
     maximum filter.  ``ground_cell_m``: ground points are reduced to the lowest
     per cell of this size before the TIN of heights (a fine DTM; 0 keeps all).  ``reconstruct``: model every owned tree (skeletons, GLB, 3D
     Tiles) with ``reconstruction`` (default :class:`sylva.core.reconstruct.Hybrid`),
-    ``lod`` and ``leaves``.  ``id_bits``: bits of the position-derived tree ID
+    ``lod`` and ``leaves``; ``billboards`` also builds each tree's billboard (Zhou et al.,
+    :mod:`sylva.core.reconstruct.billboard`), the tileset's far level of detail.  ``id_bits``: bits of the position-derived tree ID
     (31 for the int32 ``treeID``; smaller only to test collision handling).
     """
 
@@ -109,6 +110,7 @@ class PipelineOptions:
     reconstruction: Any = None
     lod: int = 0
     leaves: str = "auto"
+    billboards: bool = False
     chunk_size: int = 1_000_000
     id_bits: int = 31
     crs: Optional[str] = None
@@ -446,8 +448,9 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
             if key != "tree_id":
                 columns[key] = np.array([t.record[key] for t in trees])
         columns["model_file"] = np.array([paths["glb"].name] * len(trees), dtype=object)
+        boards = _billboards(work, own_labels, trees) if opts.billboards else [None] * len(trees)
         models = [TreeModel(t.tree_id, np.array([t.record["base_x"], t.record["base_y"], t.record["base_z"]]),
-                            t.wood, t.leaves, {k: columns[k][i] for k in columns})
+                            t.wood, t.leaves, {k: columns[k][i] for k in columns}, billboard=boards[i])
                   for i, t in enumerate(trees)]
         frame = ExportFrame.from_cloud(work)
         write_glb(models, paths["glb"], frame, cancelled=cancelled)
@@ -496,6 +499,27 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     atomic_write_bytes(paths["manifest"], (json.dumps(record, indent=1) + "\n").encode("utf-8"))
     report(progress, 1.0, f"{job.name}: {record['trees']} trees")
     return record
+
+
+def _billboards(cloud: PointCloud, labels: np.ndarray, trees) -> list:
+    """The billboard of every modelled tree, in the frame of its wood mesh (origin at its base)."""
+    from .forest import _groups
+    from .reconstruct.billboard import Billboard, billboard_tree
+
+    rgb = None
+    if all(cloud.attr(c) is not None for c in ("red", "green", "blue")):
+        rgb = np.column_stack([cloud.attrs[c] for c in ("red", "green", "blue")])
+    local = cloud.local_xyz()
+    height = np.asarray(cloud.attrs["height"], dtype=np.float64)
+    ids, groups = _groups(labels)
+    points_of = dict(zip(ids.tolist(), groups))
+    out = []
+    for t in trees:
+        idx = points_of[t.tree_id]
+        out.append(billboard_tree(local[idx], Billboard(), rgb=None if rgb is None else rgb[idx], base=t.base_local,
+                                  ground_z=float(np.median(local[idx, 2] - height[idx])), tree_id=t.tree_id,
+                                  stem_diameter_m=t.record["dbh"]))
+    return out
 
 
 def is_complete(job: TileJob) -> Optional[dict]:

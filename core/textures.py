@@ -31,7 +31,8 @@ import numpy as np
 from .atomic import atomic_open
 from .errors import InputError
 
-__all__ = ["LEAF_SHAPES", "SPECIES_SHAPES", "leaf_texture", "leaf_aspect", "write_png", "read_png_size"]
+__all__ = ["LEAF_SHAPES", "SPECIES_SHAPES", "leaf_texture", "leaf_aspect", "write_png", "read_png_size",
+           "foliage_texture", "bark_texture", "png_bytes_indexed"]
 
 LEAF_SHAPES = ("ovate", "lobed", "palmate", "lanceolate", "deltoid", "needle_spray")
 
@@ -218,3 +219,95 @@ def read_png_size(path) -> Tuple[int, int]:
     if head[:8] != b"\x89PNG\r\n\x1a\n":
         raise InputError(f"{path}: not a PNG file")
     return struct.unpack(">II", head[16:24])
+
+
+# --------------------------------------------------------------------------- billboard fallbacks
+
+def _value_noise(h: int, w: int, rng: np.random.Generator, cell_px: float) -> np.ndarray:
+    """Smooth noise in [0, 1], (h, w): a coarse random grid bilinearly upsampled."""
+    gh, gw = int(np.ceil(h / cell_px)) + 2, int(np.ceil(w / cell_px)) + 2
+    grid = rng.uniform(0.0, 1.0, (gh, gw))
+    y = (np.arange(h) + 0.5) / cell_px
+    x = (np.arange(w) + 0.5) / cell_px
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    fy, fx = (y - y0)[:, None], (x - x0)[None, :]
+    g00, g01 = grid[y0][:, x0], grid[y0][:, x0 + 1]
+    g10, g11 = grid[y0 + 1][:, x0], grid[y0 + 1][:, x0 + 1]
+    return (g00 * (1 - fy) * (1 - fx) + g01 * (1 - fy) * fx + g10 * fy * (1 - fx) + g11 * fy * fx)
+
+
+def foliage_texture(height: int, width: int, seed: int = 0, rgb=(0.22, 0.36, 0.14)) -> np.ndarray:
+    """A procedural foliage colour image (height, width, 3) uint8: clumps of light and shade.
+
+    The fallback texture of billboard crowns (Zhou et al. 2013 §VI-B needs an
+    image; without one and without point colours Sylva draws this): two
+    octaves of value noise modulate the brightness of ``rgb`` (linear 0..1).
+    """
+    rng = np.random.default_rng(seed)
+    h, w = max(int(height), 1), max(int(width), 1)
+    n = 0.65 * _value_noise(h, w, rng, 6.0) + 0.35 * _value_noise(h, w, rng, 2.0)
+    shade = 0.55 + 0.9 * n
+    hue = 1.0 + 0.12 * (_value_noise(h, w, rng, 12.0) - 0.5)
+    out = np.asarray(rgb, dtype=np.float64)[None, None, :] * shade[..., None]
+    out[..., 0] *= hue
+    return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
+
+
+def bark_texture(height: int, width: int, seed: int = 0, rgb=(0.30, 0.20, 0.13)) -> np.ndarray:
+    """A procedural bark colour image (height, width, 3) uint8: vertical furrows (the trunk quads' fallback)."""
+    rng = np.random.default_rng(seed)
+    h, w = max(int(height), 1), max(int(width), 1)
+    cols = rng.uniform(0.0, 1.0, w)
+    furrow = 0.75 + 0.35 * np.convolve(np.r_[cols[-1:], cols, cols[:1]], np.ones(3) / 3.0, "valid")
+    n = _value_noise(h, w, rng, 3.0)
+    shade = furrow[None, :] * (0.85 + 0.3 * n)
+    out = np.asarray(rgb, dtype=np.float64)[None, None, :] * shade[..., None]
+    return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
+
+
+def png_bytes_indexed(rgba: np.ndarray, max_colours: int = 64) -> bytes:
+    """A palette PNG (colour type 3, 8-bit indices, ``tRNS``) of an RGBA image with a binary alpha.
+
+    Pixels with alpha < 128 become index 0 (fully transparent); the opaque
+    colours are reduced to at most ``max_colours - 1`` entries: colours are
+    binned to 5 bits a channel, the most frequent bins kept (ties by bin
+    value: deterministic) and every other bin mapped to its nearest kept one;
+    each entry is the mean of the colours it stands for.  Much smaller than
+    RGBA for the billboard atlases (Zhou et al. 2013 Table I: ~40 kB a tree).
+    """
+    from scipy.spatial import cKDTree
+
+    rgba = np.ascontiguousarray(rgba, dtype=np.uint8)
+    h, w = rgba.shape[:2]
+    max_colours = int(min(max(max_colours, 2), 256))
+    flat = rgba.reshape(-1, 4)
+    opaque = flat[:, 3] >= 128
+    rgb = flat[opaque, :3].astype(np.int64)
+    index = np.zeros(h * w, dtype=np.uint8)
+    palette = np.zeros((1, 3))
+    if len(rgb):
+        palette[0] = rgb.mean(axis=0)  # the transparent entry: a mean colour, so filtered edges do not darken
+        key = ((rgb[:, 0] >> 3) << 10) | ((rgb[:, 1] >> 3) << 5) | (rgb[:, 2] >> 3)
+        bins, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+        keep = np.lexsort((bins, -counts))[:max_colours - 1]
+        centres = np.column_stack([(bins >> 10) & 31, (bins >> 5) & 31, bins & 31]).astype(np.float64)
+        _, nearest = cKDTree(centres[keep]).query(centres)
+        entry = nearest[inverse]
+        sums = np.stack([np.bincount(entry, weights=rgb[:, c], minlength=len(keep)) for c in range(3)], axis=1)
+        n = np.bincount(entry, minlength=len(keep))[:, None]
+        palette = np.vstack([palette, sums / np.maximum(n, 1)])
+        index[opaque] = (entry + 1).astype(np.uint8)
+    plte = np.clip(np.rint(palette), 0, 255).astype(np.uint8)
+    raw = np.zeros((h, w + 1), dtype=np.uint8)
+    raw[:, 1:] = index.reshape(h, w)
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + tag + data
+                + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
+
+    return (b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 3, 0, 0, 0))
+            + chunk(b"PLTE", plte.tobytes())
+            + chunk(b"tRNS", b"\x00")
+            + chunk(b"IDAT", zlib.compress(raw.tobytes(), 9))
+            + chunk(b"IEND", b""))

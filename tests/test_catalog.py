@@ -276,3 +276,20 @@ def test_progress_moves_inside_a_tile(stand, tmp_path):
     assert len(inside) >= 3 and all(0.0 < f < 0.9 for f, _ in inside)
     fractions = [f for f, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_billboards_are_the_far_level_of_detail(stand, tmp_path):
+    """With billboards on, each tile's 3D Tiles root (far) content draws one textured billboard per tree."""
+    from dataclasses import replace
+
+    from sylva.core.export.gltf import read_glb
+
+    root, _, _ = stand
+    rep = run_catalog([root / "one"], tmp_path / "out", replace(FAST, reconstruct=True, billboards=True))
+    assert not rep.failures and rep.trees > 20
+    far = next((tmp_path / "out" / "models" / "tileset").glob("*/content/root.glb"))
+    doc, _ = read_glb(far)
+    boards = [m for m in doc["materials"] if m["name"].startswith("billboard_")]
+    assert len(boards) == rep.trees
+    assert all(m["alphaMode"] == "MASK" and m["doubleSided"] for m in boards)
+    assert len(doc["images"]) == rep.trees

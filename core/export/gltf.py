@@ -12,6 +12,12 @@ Layout of a Sylva GLB (one file per tile, or one per tree):
   its mesh holds the vertices relative to the base (ENU axes, float32).
 * materials ``bark`` (PBR, brown, rough) and ``leaves_<shape>`` (the leaf
   texture as an embedded PNG, alphaMode MASK, doubleSided).
+* billboards (``content="billboard"``, Zhou et al. 2013): each tree's quads
+  are one primitive with its own material ``billboard_<id>`` (the tree's
+  texture atlas as an embedded palette PNG with a transparent index,
+  alphaMode MASK, doubleSided); trees without a billboard are written as
+  the ``lod``/``leaves`` arguments say.  A tree with a billboard but no
+  wood and no leaves is written as its billboard in either content.
 * 3D Tiles 1.1 metadata: every primitive has a ``_FEATURE_ID_0`` attribute
   (the tree's row in the property table) and ``EXT_mesh_features``; the
   root ``EXT_structural_metadata`` holds a schema (class ``tree``) and one
@@ -43,13 +49,15 @@ from ..progress import check, report
 from .georef import Georef, Z_UP_TO_Y_UP, default_origin, write_sidecars
 from .model import ExportFrame, TreeModel, atomic_write_bytes, check_models
 
-__all__ = ["write_glb", "glb_bytes", "read_glb", "node_world_positions", "BARK_RGBA", "SYLVA_GENERATOR"]
+__all__ = ["write_glb", "glb_bytes", "read_glb", "node_world_positions", "uses_billboard", "BARK_RGBA",
+           "SYLVA_GENERATOR"]
 
 SYLVA_GENERATOR = "Sylva (QGIS plugin) glTF writer"
 #: Bark base colour (linear RGBA): a mid brown.
 BARK_RGBA = (0.30, 0.20, 0.13, 1.0)
 
 _FLOAT, _UINT, _USHORT = 5126, 5125, 5123
+_BILLBOARD = object()  # part kind of billboard quads (a sentinel: leaf kinds are shape names)
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
@@ -173,14 +181,27 @@ def _pick_lod(model: TreeModel, lod):
     return lod if (lod is not None and lod in model.lods) else None
 
 
+CONTENTS = ("model", "billboard")
+
+
+def uses_billboard(model: TreeModel, content: str = "model") -> bool:
+    """Whether ``model`` is drawn as its billboard for ``content`` (see the module docstring)."""
+    if model.billboard is None or len(model.billboard_arrays()[1]) == 0:
+        return False
+    return content == "billboard" or not model.has_mesh()
+
+
 def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = None,
               leaves: bool = True, texture_size: int = 256, metadata: bool = True,
-              extras: Optional[dict] = None) -> bytes:
+              extras: Optional[dict] = None, content: str = "model") -> bytes:
     """The GLB of ``models`` in the ENU frame of ``georef`` (see the module docstring).
 
     ``lod`` None writes the full wood; an int writes ``model.lods[lod]`` when the
     model has it (else the full wood); ``"coarsest"`` the lowest level it has.  ``leaves`` False leaves the leaf cards out.
+    ``content`` "model" (default) or "billboard": the trees' billboards where they have one.
     """
+    if content not in CONTENTS:
+        raise InputError(f"glTF export: content must be one of {', '.join(CONTENTS)}, got {content!r}")
     models = check_models(models, "glTF export")
     b = _Builder()
     bases_enu, jac = georef.tree_frames([m.base for m in models])
@@ -192,13 +213,17 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
     for i, m in enumerate(models):
         prims = []
         parts = []
-        wv, wf = m.wood_arrays(_pick_lod(m, lod))
-        if len(wf):
-            parts.append(("bark", wv, wf, None))
-        if leaves:
-            lv, lf, luv = m.leaf_arrays()
-            if len(lf):
-                parts.append((m.leaves.texture, lv, lf, luv))
+        if uses_billboard(m, content):
+            bv, bf, buv = m.billboard_arrays()
+            parts.append((_BILLBOARD, bv, bf, buv))
+        else:
+            wv, wf = m.wood_arrays(_pick_lod(m, lod))
+            if len(wf):
+                parts.append(("bark", wv, wf, None))
+            if leaves:
+                lv, lf, luv = m.leaf_arrays()
+                if len(lf):
+                    parts.append((m.leaves.texture, lv, lf, luv))
         for kind, v, f, uv in parts:
             # drop unreferenced vertices so min/max and counts describe what is drawn
             used, inv = np.unique(f, return_inverse=True)
@@ -210,7 +235,16 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
                 uv = uv[used]
                 tex = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
                 attrs["TEXCOORD_0"] = b.accessor(tex, "VEC2", _ARRAY_BUFFER)
-                if kind not in leaf_material:
+                if kind is _BILLBOARD:
+                    images.append({"name": f"billboard_{m.tree_id}", "mimeType": "image/png",
+                                   "bufferView": b.view(m.billboard.png())})
+                    textures.append({"sampler": 0, "source": len(images) - 1})
+                    materials.append({"name": f"billboard_{m.tree_id}", "alphaMode": "MASK", "alphaCutoff": 0.5,
+                                      "doubleSided": True, "pbrMetallicRoughness": {
+                                          "baseColorTexture": {"index": len(textures) - 1},
+                                          "metallicFactor": 0.0, "roughnessFactor": 0.9}})
+                    material = len(materials) - 1
+                elif kind not in leaf_material:
                     png = leaf_png(kind, texture_size)
                     images.append({"name": f"leaf_{kind}", "mimeType": "image/png", "bufferView": b.view(png)})
                     textures.append({"sampler": 0, "source": len(images) - 1})
@@ -219,7 +253,8 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
                                           "baseColorTexture": {"index": len(textures) - 1},
                                           "metallicFactor": 0.0, "roughnessFactor": 0.8}})
                     leaf_material[kind] = len(materials) - 1
-                material = leaf_material[kind]
+                if kind is not _BILLBOARD:
+                    material = leaf_material[kind]
             else:
                 material = 0
             prim = {"attributes": attrs, "indices": b.indices(f, len(pos)), "material": material, "mode": 4}
@@ -326,7 +361,8 @@ def node_world_positions(doc: dict, binary: bytes, name: str, z_up: bool = True)
 
 def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None, per_tree: bool = False,
               lod: Optional[int] = None, leaves: bool = True, texture_size: int = 256,
-              metadata: bool = True, sidecars: bool = True, progress=None, cancelled=None) -> List[Path]:
+              metadata: bool = True, sidecars: bool = True, progress=None, cancelled=None,
+              content: str = "model") -> List[Path]:
     """Write GLB file(s); returns the paths written.
 
     ``per_tree`` False: one file ``path`` (a tile) with its origin at
@@ -334,6 +370,7 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     ground).  ``per_tree`` True: ``path`` is a folder that receives
     ``tree_<id>.glb`` per tree, each with its origin at the tree base.  With
     ``sidecars`` a ``.prj`` and a ``.origin.json`` are written next to each file.
+    ``content`` "billboard" writes the trees' billboards (Zhou et al.) instead of their models.
     """
     models = check_models(models, f"glTF export to {path}")
     path = Path(path)
@@ -341,7 +378,8 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     if not per_tree:
         georef = Georef(frame, default_origin(models) if origin is None else origin)
         report(progress, 0.0, f"writing {len(models)} trees to {path.name}")
-        out.append(atomic_write_bytes(path, glb_bytes(models, georef, lod, leaves, texture_size, metadata)))
+        out.append(atomic_write_bytes(path, glb_bytes(models, georef, lod, leaves, texture_size, metadata,
+                                                         content=content)))
         if sidecars:
             out.extend(write_sidecars(path, georef))
         report(progress, 1.0, "done")
@@ -352,7 +390,8 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
         check(cancelled)
         georef = Georef(frame, m.base)
         target = path / f"{m.name}.glb"
-        out.append(atomic_write_bytes(target, glb_bytes([m], georef, lod, leaves, texture_size, metadata)))
+        out.append(atomic_write_bytes(target, glb_bytes([m], georef, lod, leaves, texture_size, metadata,
+                                                            content=content)))
         if sidecars:
             out.extend(write_sidecars(target, georef))
         report(progress, (k + 1) / len(models), f"tree {m.tree_id}")

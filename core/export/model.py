@@ -45,7 +45,10 @@ class TreeModel:
     east, y grid north, z up); ``leaves`` a :class:`sylva.core.leaves.LeafMesh`
     in the same frame, or None; ``attributes`` JSON scalars (tree_id, height,
     crown_diameter, crown_base_height, dbh, dbh_source, species, method, ...);
-    ``lods`` optional coarser wood meshes by level (0 = coarsest), same frame.
+    ``lods`` optional coarser wood meshes by level (0 = coarsest), same frame;
+    ``billboard`` optional :class:`sylva.core.reconstruct.billboard.BillboardMesh`
+    in the same frame (Zhou et al. 2013: textured quads, the far level of
+    detail; a tree may have only a billboard, no wood and no leaves).
     """
 
     tree_id: int
@@ -54,6 +57,7 @@ class TreeModel:
     leaves: Any = None
     attributes: Dict[str, Any] = field(default_factory=dict)
     lods: Dict[int, Any] = field(default_factory=dict)
+    billboard: Any = None
 
     def __post_init__(self):
         self.tree_id = int(self.tree_id)
@@ -92,9 +96,29 @@ class TreeModel:
                              f"({len(v)} vertices, {len(uv)} uvs, faces index up to {f.max() if len(f) else -1})")
         return v, f, uv
 
+    def billboard_arrays(self):
+        """(vertices, faces, uvs) of the billboard quads (empty arrays when there is none)."""
+        bb = self.billboard
+        if bb is None or len(np.asarray(bb.faces)) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 2))
+        v = np.asarray(bb.vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(bb.faces, dtype=np.int64).reshape(-1, 3)
+        uv = np.asarray(bb.uvs, dtype=np.float64).reshape(-1, 2)
+        tex = np.asarray(bb.texture)
+        if (len(uv) != len(v) or (len(f) and (f.min() < 0 or f.max() >= len(v))) or not np.all(np.isfinite(v))
+                or tex.ndim != 3 or tex.shape[2] != 4 or tex.dtype != np.uint8):
+            raise InputError(f"tree {self.tree_id}: billboard is inconsistent ({len(v)} vertices, {len(uv)} uvs, "
+                             f"texture {tex.shape} {tex.dtype})")
+        return v, f, uv
+
+    def has_mesh(self) -> bool:
+        """True when the tree has wood or leaf faces (the full model)."""
+        return len(self.wood_arrays()[1]) > 0 or len(self.leaf_arrays()[1]) > 0
+
     def all_local_vertices(self) -> np.ndarray:
         parts = [self.wood_arrays()[0], self.leaf_arrays()[0]]
         parts += [self.wood_arrays(k)[0] for k in sorted(self.lods)]
+        parts.append(self.billboard_arrays()[0])
         return np.concatenate(parts)
 
 
@@ -124,7 +148,7 @@ def check_models(models, what: str = "export"):
         seen.add(m.tree_id)
         wv, wf = m.wood_arrays()
         _, lf, _ = m.leaf_arrays()
-        if len(wf) == 0 and len(lf) == 0:
+        if len(wf) == 0 and len(lf) == 0 and len(m.billboard_arrays()[1]) == 0:
             raise InputError(f"{what}: tree {m.tree_id} has an empty mesh (no wood and no leaf faces); "
                              f"leave it out or rebuild its geometry")
     return models

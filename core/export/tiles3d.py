@@ -3,7 +3,8 @@
 Layout written into ``folder``::
 
     tileset.json              asset.version "1.1"; extras.georeference (CRS, origin)
-    content/root.glb          parent tile: every tree, coarse (TreeModel.lods[min], no leaves)
+    content/root.glb          parent tile: every tree, coarse (its billboard when it has one, Zhou et al.
+                              2013; else TreeModel.lods[min], no leaves)
     content/tile_<i>_<j>.glb  children: the full models (wood + leaf cards) of one grid cell
 
 * The root tile's ``transform`` is the ENU -> ECEF matrix at the origin
@@ -15,7 +16,8 @@ Layout written into ``folder``::
 * Geometric error (metres): a leaf tile 0 (the full model); the parent tile
   the largest distance from any full-model vertex (wood and leaves) to the
   nearest coarse vertex of the same tree (a one-sided Hausdorff distance on
-  vertices, cKDTree); the tileset the diagonal of the root box (the error of
+  vertices, cKDTree) — for a billboard, to the nearest opaque texel centre of
+  its quads (what a viewer sees of it); the tileset the diagonal of the root box (the error of
   drawing nothing).  ``refine`` is REPLACE: close up, children replace the parent.
 * Per-tree attributes: EXT_mesh_features (feature ID per vertex) and
   EXT_structural_metadata (one property table per GLB), plus node extras.
@@ -34,7 +36,7 @@ import numpy as np
 from ..errors import InputError
 from ..progress import check, report
 from .georef import Georef, default_origin, write_sidecars
-from .gltf import SYLVA_GENERATOR, glb_bytes
+from .gltf import SYLVA_GENERATOR, glb_bytes, uses_billboard
 from .model import ExportFrame, TreeModel, atomic_write_bytes, check_models
 
 __all__ = ["write_tileset", "tile_box", "coarse_error"]
@@ -44,7 +46,9 @@ _PAD_M = 0.01
 
 def _enu_vertices(model: TreeModel, base_enu, jac, coarse: bool) -> np.ndarray:
     """The ENU positions (float32 rounding applied as in the GLB) of what a tile draws of ``model``."""
-    if coarse:
+    if uses_billboard(model, "billboard" if coarse else "model"):
+        parts = [model.billboard_arrays()[:2]]
+    elif coarse:
         lod = min(model.lods) if model.lods else None
         parts = [model.wood_arrays(lod)]
     else:
@@ -69,6 +73,14 @@ def coarse_error(model: TreeModel) -> float:
     """Largest distance (m) from a full-model vertex to the nearest vertex of its coarse version."""
     from scipy.spatial import cKDTree
 
+    if uses_billboard(model, "billboard"):
+        if not model.has_mesh():
+            return 0.0  # the billboard is the full model too
+        from ..reconstruct.billboard import opaque_points
+
+        fv = np.concatenate([model.wood_arrays()[0], model.leaf_arrays()[0]])
+        d, _ = cKDTree(opaque_points(model.billboard)).query(fv)
+        return float(d.max())
     lod = min(model.lods) if model.lods else None
     cv, cf = model.wood_arrays(lod)
     fv = np.concatenate([model.wood_arrays()[0], model.leaf_arrays()[0]])
@@ -117,8 +129,10 @@ def write_tileset(models: Sequence[TreeModel], folder, frame: ExportFrame, origi
     coarse_pts = np.concatenate([_enu_vertices(m, bases_enu[i], jac[i], True) for i, m in enumerate(models)])
     root_pts = np.concatenate(all_pts + [coarse_pts])
     root_error = max(coarse_error(m) for m in models)
+    root_content = "billboard" if any(m.billboard is not None for m in models) else "model"
     written.append(atomic_write_bytes(folder / "content/root.glb",
-                                      glb_bytes(models, georef, lod="coarsest", leaves=False, texture_size=texture_size)))
+                                      glb_bytes(models, georef, lod="coarsest", leaves=False, texture_size=texture_size,
+                                                content=root_content)))
     box = tile_box(root_pts)
     diagonal = 2.0 * float(np.linalg.norm([box[3], box[7], box[11]]))
     tileset = {

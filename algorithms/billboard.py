@@ -1,0 +1,153 @@
+"""Lightweight billboard trees (Zhou et al. 2013): sylva:billboards."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.reconstruct.billboard import Billboard
+from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
+from .spec import FILE_OUT, FOLDER_OUT, RASTER, Algorithm, Feedback, Param, Result
+
+BILLBOARD_PARAMS = method_params(Billboard, {
+    "pixel_m": ("Mask pixel (m)", "Pixel size of the shape masks: the scale factor s of Zhou et al. §VI-A, so "
+                                  "sizes come out in metres. Smaller finds thinner trunks, costs more time."),
+    "close_m": ("Closing radius (m)", "Smallest radius of the morphological closing that joins the points into a "
+                                      "silhouette (§VI-A); the median point spacing is used when larger."),
+    "width_jump_m": ("Width jump (m)", "Growth of the width function f(y) that ends the trunk going up (the first "
+                                       "non-zero ∂f/∂y of §VI-A)."),
+    "min_trunk_m": ("Shortest trunk (m)", "A trunk area shorter than this is no trunk: the tree gets the three "
+                                          "crown quads only (§VI-A, Fig. 5)."),
+    "ransac_tolerance_m": ("RANSAC tolerance (m)", "Largest distance of an edge point to a trunk edge line "
+                                                   "found by RANSAC (§VI-A)."),
+    "texture_px": ("Texture size (px)", "Texels along the tree's longest side; 64–128 keep a tree near the "
+                                        "paper's 40 kB (Table I)."),
+    "gmm_components": ("GMM clusters", "Clusters of the Gaussian mixture in HSV that removes wrong colours "
+                                       "(§VI-B); 0 keeps every colour."),
+    "block_px": ("Block size (px)", "Initial block size s of the texture completion (§VI-B, Algorithm 1)."),
+    "palette_colours": ("Palette colours", "Colours of the PNG palette of each tree's texture."),
+    "seed": ("Random seed", "Seed of RANSAC and of the Gaussian mixture: same seed, same result."),
+}, advanced=("close_m", "width_jump_m", "ransac_tolerance_m", "gmm_components", "block_px", "palette_colours",
+             "seed"))
+
+
+def point_colours(cloud, image_path, feedback: Feedback):
+    """(colours (n, 3) float in [0, 1] with NaN rows, source name) or (None, "procedural")."""
+    if image_path:
+        from ..core.reconstruct.billboard import read_orthophoto, sample_orthophoto
+
+        ortho = read_orthophoto(image_path)
+        x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+        if ortho.crs is not None and cloud.crs is not None and not ortho.crs.equals(cloud.crs):
+            from pyproj import Transformer
+
+            x, y = Transformer.from_crs(cloud.crs, ortho.crs, always_xy=True).transform(x, y)
+        rgb = sample_orthophoto(ortho, x, y)
+        inside = np.isfinite(rgb[:, 0])
+        feedback.info(f"{int(inside.sum()):,} of {len(inside):,} points lie on the image")
+        if not inside.any():
+            from ..core.errors import InputError
+
+            raise InputError(f"{image_path}: no point of the cloud lies on the image (check its extent and CRS)")
+        return rgb, "image"
+    names = ("red", "green", "blue")
+    if all(cloud.attr(n) is not None for n in names):
+        rgb = np.column_stack([np.asarray(cloud.attrs[n]) for n in names])
+        if rgb.any():
+            return rgb, "points"
+    feedback.info("no colours in the points and no image: procedural bark and foliage textures")
+    return None, "procedural"
+
+
+def run(args: dict, feedback: Feedback) -> Result:
+    from ..core.errors import InputError
+    from ..core.export.gltf import write_glb
+    from ..core.export.model import ExportFrame, TreeModel
+    from ..core.export.tiles3d import write_tileset
+    from ..core.forest import _groups
+    from ..core.measure import estimate_dbh, tree_metrics
+    from ..core.progress import check
+    from ..core.reconstruct.billboard import billboard_tree, point_rgb
+    from ..core.terrain import normalize
+
+    source = load_cloud(args, feedback)
+    if "treeID" not in source.attrs:
+        raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension; "
+                         "run 'Segment trees' (sylva:segmenttrees) on it first")
+    cloud, _ = drop_noise(source, feedback)
+    if cloud.attr("height") is None:
+        feedback.progress(0.02, "height above ground")
+        cloud = normalize(cloud)
+    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    metrics = tree_metrics(cloud, labels)
+    if len(metrics) == 0:
+        raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
+    method = build_method(Billboard, args)
+    rgb, kind = point_colours(cloud, args.get("IMAGE"), feedback)
+    colours = point_rgb(rgb) if rgb is not None else None
+    local = cloud.local_xyz()
+    height = np.asarray(cloud.attrs["height"], dtype=np.float64)
+    columns = metrics.columns()
+    row_of = {int(t): i for i, t in enumerate(metrics.tree_id)}
+    ids, groups = _groups(labels)
+    models = []
+    feedback.info(f"{len(ids)} trees")
+    for k, (tree_id, idx) in enumerate(zip(ids, groups)):
+        check(feedback.cancelled)
+        feedback.progress(0.05 + 0.8 * k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
+        xyz = local[idx]
+        ground_z = float(np.median(xyz[:, 2] - height[idx]))
+        i = row_of[int(tree_id)]
+        dbh, _ = estimate_dbh(xyz, height[idx], float(metrics.height[i]), float(metrics.crown_diameter[i]))
+        bb = billboard_tree(xyz, method, rgb=None if colours is None else colours[idx], ground_z=ground_z,
+                            tree_id=int(tree_id), texture_source=kind, stem_diameter_m=dbh)
+        attributes = {key: columns[key][i] for key in columns}
+        attributes.update(bb.summary())
+        models.append(TreeModel(int(tree_id), cloud.from_local(bb.origin[None, :])[0], None,
+                                attributes=attributes, billboard=bb))
+    frame = ExportFrame.from_cloud(cloud)
+    feedback.progress(0.88, "writing the GLB")
+    result = Result(values={"TREE_COUNT": len(models), "TRUNK_COUNT": sum(m.billboard.has_trunk for m in models)})
+    write_glb(models, args["OUTPUT"], frame, content="billboard", cancelled=feedback.cancelled)
+    result.files["OUTPUT"] = args["OUTPUT"]
+    if args.get("TILESET"):
+        feedback.progress(0.94, "writing the 3D Tiles tileset")
+        write_tileset(models, args["TILESET"], frame, cancelled=feedback.cancelled)
+        result.files["TILESET"] = args["TILESET"]
+    feedback.info(f"{len(models)} billboard trees, {result.values['TRUNK_COUNT']} with a single main trunk "
+                  f"(six quads), the others crown quads on a stem drawn from their DBH; textures: {kind}")
+    feedback.progress(1.0, "done")
+    return result
+
+
+BILLBOARDS = Algorithm(
+    id="billboards",
+    name="Billboard trees (Zhou et al.)",
+    group="Individual trees",
+    group_id="trees",
+    summary=(
+        "Lightweight 3D trees for large scenes (Zhou et al. 2013): every tree of a segmented tile (a treeID "
+        "per point, as 'Segment trees' writes it) becomes six textured quads with transparency — three around "
+        "the trunk axis, three around a vertical crown axis — or three crown quads when the tree has no "
+        "single main trunk. The trunk is found from the width of the tree's silhouette (the first change of "
+        "f(y)) and two edge lines fitted by RANSAC (§VI-A); sizes are in metres. Textures come from the "
+        "points' RGB, or from an orthophoto, cleaned by a Gaussian mixture in HSV and completed block by "
+        "block (§VI-B, Eq. 2–3); procedural bark and foliage when there is no colour. Outputs: one GLB "
+        "(a node per tree, georeferenced, its attributes as 3D Tiles metadata) and optionally a 3D Tiles "
+        "tileset."
+    ),
+    params=(
+        input_cloud(" It must carry a treeID dimension (0 = no tree)."),
+        Param("IMAGE", RASTER, "Image for the textures (orthophoto)", optional=True,
+              help="A north-up georeferenced RGB image (GeoTIFF) over the tile; each point takes the colour of "
+                   "the pixel above it. Leave empty to use the points' own RGB."),
+        *BILLBOARD_PARAMS,
+        crs_override(),
+        Param("OUTPUT", FILE_OUT, "Billboard trees (GLB)", file_filter="glTF binary (*.glb)",
+              help="One GLB for the tile: a node per tree named tree_<id> with its quads and its own texture "
+                   "(PNG with transparency), a .prj and an origin sidecar."),
+        Param("TILESET", FOLDER_OUT, "3D Tiles tileset (folder)", optional=True,
+              help="A 3D Tiles 1.1 tileset of the billboards (the tile needs a CRS with a datum)."),
+    ),
+    run=run,
+)
+
+ALGORITHMS = (BILLBOARDS,)
