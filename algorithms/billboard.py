@@ -5,7 +5,7 @@ import numpy as np
 
 from ..core.reconstruct.billboard import Billboard
 from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
-from .spec import FILE_OUT, FOLDER_OUT, RASTER, Algorithm, Feedback, Param, Result
+from .spec import FILE, FILE_OUT, FOLDER_OUT, RASTER, Algorithm, Feedback, Param, Result
 
 BILLBOARD_PARAMS = method_params(Billboard, {
     "pixel_m": ("Mask pixel (m)", "Pixel size of the shape masks: the scale factor s of Zhou et al. §VI-A, so "
@@ -29,8 +29,22 @@ BILLBOARD_PARAMS = method_params(Billboard, {
              "seed"))
 
 
-def point_colours(cloud, image_path, feedback: Feedback):
+def point_colours(cloud, image_path, feedback: Feedback, camera_path=None):
     """(colours (n, 3) float in [0, 1] with NaN rows, source name) or (None, "procedural")."""
+    from ..core.errors import InputError
+
+    if camera_path and not image_path:
+        raise InputError(f"CAMERA {camera_path}: give the street-level photo it belongs to as IMAGE")
+    if image_path and camera_path:
+        from ..core.reconstruct.billboard import read_camera, sample_camera
+
+        rgb = sample_camera(read_camera(camera_path, image_path), cloud.xyz)
+        seen = np.isfinite(rgb[:, 0])
+        feedback.info(f"{int(seen.sum()):,} of {len(seen):,} points project into the photo")
+        if not seen.any():
+            raise InputError(f"{image_path}: no point of the cloud projects into the photo "
+                             f"(check the camera {camera_path} and the CRS)")
+        return rgb, "camera"
     if image_path:
         from ..core.reconstruct.billboard import read_orthophoto, sample_orthophoto
 
@@ -44,8 +58,6 @@ def point_colours(cloud, image_path, feedback: Feedback):
         inside = np.isfinite(rgb[:, 0])
         feedback.info(f"{int(inside.sum()):,} of {len(inside):,} points lie on the image")
         if not inside.any():
-            from ..core.errors import InputError
-
             raise InputError(f"{image_path}: no point of the cloud lies on the image (check its extent and CRS)")
         return rgb, "image"
     names = ("red", "green", "blue")
@@ -81,7 +93,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     if len(metrics) == 0:
         raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
     method = build_method(Billboard, args)
-    rgb, kind = point_colours(cloud, args.get("IMAGE"), feedback)
+    rgb, kind = point_colours(cloud, args.get("IMAGE"), feedback, args.get("CAMERA"))
     colours = point_rgb(rgb) if rgb is not None else None
     local = cloud.local_xyz()
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
@@ -136,9 +148,15 @@ BILLBOARDS = Algorithm(
     ),
     params=(
         input_cloud(" It must carry a treeID dimension (0 = no tree)."),
-        Param("IMAGE", RASTER, "Image for the textures (orthophoto)", optional=True,
-              help="A north-up georeferenced RGB image (GeoTIFF) over the tile; each point takes the colour of "
-                   "the pixel above it. Leave empty to use the points' own RGB."),
+        Param("IMAGE", RASTER, "Image for the textures (orthophoto or photo)", optional=True,
+              help="A north-up georeferenced RGB image (GeoTIFF) over the tile, each point taking the colour of "
+                   "the pixel above it; or, with CAMERA, a street-level photo (JPEG, PNG, TIFF) each point "
+                   "takes the colour it projects to. Leave empty to use the points' own RGB."),
+        Param("CAMERA", FILE, "Camera of the photo (JSON)", optional=True, file_filter="JSON (*.json)",
+              help="Makes IMAGE a street-level photo (Zhou et al. §V): a JSON file with K (3x3 intrinsics, "
+                   "pixels), R (3x3) and t (3) taking the cloud's CRS coordinates to the camera frame "
+                   "(X_c = R X + t, z forward, image rows down). Occlusions are not traced: the colour "
+                   "cleaning and block completion remove what the camera sees in front of a tree."),
         *BILLBOARD_PARAMS,
         crs_override(),
         Param("OUTPUT", FILE_OUT, "Billboard trees (GLB)", file_filter="glTF binary (*.glb)",

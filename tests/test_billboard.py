@@ -408,3 +408,33 @@ def test_processing_billboards(sylva_provider, segmented_corner, tmp_path):
     n = len(np.unique(labels[labels > 0]))
     assert sum(1 for node in doc["nodes"] if node.get("name", "").startswith("tree_")) == n
     assert all(im["mimeType"] == "image/png" for im in doc["images"])
+
+
+def test_cli_billboards_textured_from_a_street_level_photo(segmented_corner, tmp_path):
+    """IMAGE + CAMERA: a photo taken from 40 m south of the corner, looking north, colours the billboards."""
+    from PIL import Image
+
+    from sylva.core.io import read_cloud
+
+    path, labels = segmented_corner
+    cloud = read_cloud(path)
+    centre = np.array([cloud.xyz[:, 0].mean(), cloud.xyz[:, 1].min() - 40.0, cloud.xyz[:, 2].mean()])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])   # x east, y down, z north (forward)
+    camera = {"K": [[200.0, 0.0, 200.0], [0.0, 200.0, 200.0], [0.0, 0.0, 1.0]], "R": R.tolist(),
+              "t": (-R @ centre).tolist()}
+    (tmp_path / "cam.json").write_text(json.dumps(camera))
+    photo = np.zeros((400, 400, 3), np.uint8)
+    photo[:] = (200, 40, 30)                                              # a red world
+    Image.fromarray(photo).save(tmp_path / "photo.png")
+    glb = tmp_path / "bb.glb"
+    run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "billboards", f"--INPUT={path}",
+                          f"--IMAGE={tmp_path / 'photo.png'}", f"--CAMERA={tmp_path / 'cam.json'}",
+                          f"--OUTPUT={glb}"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    doc, _ = read_glb(glb)
+    trees = [n for n in doc["nodes"] if n.get("name", "").startswith("tree_")]
+    assert trees and all(n["extras"]["bb_texture"] == "camera" for n in trees)
+    bad = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "billboards", f"--INPUT={path}",
+                          f"--IMAGE={tmp_path / 'photo.png'}", f"--CAMERA={tmp_path / 'photo.png'}",
+                          f"--OUTPUT={tmp_path / 'x.glb'}"], capture_output=True, text=True)
+    assert bad.returncode == 1 and "not a camera file" in bad.stderr and not (tmp_path / "x.glb").exists()

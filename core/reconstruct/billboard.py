@@ -67,7 +67,7 @@ from ..textures import bark_texture
 
 __all__ = ["Billboard", "BillboardMesh", "PlaneFit", "Orthophoto", "PinholeCamera", "billboard_tree",
            "shape_mask", "width_function", "first_change", "ransac_line", "fit_plane", "shape_fit",
-           "point_rgb", "read_orthophoto", "sample_orthophoto", "sample_camera", "gmm_clean",
+           "point_rgb", "read_orthophoto", "sample_orthophoto", "read_camera", "sample_camera", "gmm_clean",
            "complete_blocks", "bhattacharyya", "opaque_points"]
 
 
@@ -540,6 +540,53 @@ class PinholeCamera:
     R: Any
     t: Any
     image: Any
+
+
+def read_camera(camera_path, image_path) -> PinholeCamera:
+    """A street-level photo (any format Pillow or tifffile reads) and its camera from a JSON file.
+
+    The JSON holds ``K`` (3 x 3 intrinsics, pixels), ``R`` (3 x 3) and ``t`` (3) taking
+    world coordinates — the point cloud's CRS coordinates — to the camera frame
+    (X_c = R X + t, +z forward, image rows down), as in Zhou et al. §V.
+    """
+    import json
+
+    camera_path, image_path = Path(camera_path), Path(image_path)
+    try:
+        doc = json.loads(camera_path.read_text("utf-8"))
+        K, R, t = (np.asarray(doc[k], dtype=np.float64) for k in ("K", "R", "t"))
+    except FileNotFoundError:
+        raise InputError(f"{camera_path}: camera file not found") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{camera_path}: not a camera file (JSON with K 3x3, R 3x3 and t 3): {exc}") from None
+    if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,) or not np.all(np.isfinite(np.r_[K.ravel(), R.ravel(), t])):
+        raise InputError(f"{camera_path}: K and R must be 3 x 3 and t 3 finite numbers, got shapes "
+                         f"{K.shape}, {R.shape}, {t.shape}")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        raise InputError(f"{camera_path}: R is not a rotation matrix (R Rᵀ ≠ I)")
+    if not image_path.exists():
+        raise InputError(f"{image_path}: image file not found")
+    try:
+        if image_path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            image = tifffile.imread(str(image_path))
+        else:
+            from PIL import Image
+
+            with Image.open(image_path) as im:
+                image = np.asarray(im.convert("RGB"))
+    except Exception as exc:  # decoders raise their own errors for damaged files
+        raise InputError(f"{image_path}: cannot read the image: {exc}") from None
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] < 3:
+        raise InputError(f"{image_path}: expected an RGB or grey image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        top = 65535.0 if image.max() > 255 else 255.0
+        image = np.clip(np.rint(image.astype(np.float64) * (255.0 / top)), 0, 255).astype(np.uint8)
+    return PinholeCamera(K, R, t, image[..., :3])
 
 
 def sample_camera(camera: PinholeCamera, xyz) -> np.ndarray:
