@@ -9,7 +9,8 @@ from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
 from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
-from .spec import ENUM, FILE_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param, Result
+from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param,
+                   Result)
 
 METHODS = ("hybrid", "greedy", "guided", "dense", "auto")
 
@@ -40,8 +41,10 @@ def _methods(args):
     greedy = build_method(GreedySkeleton, args)
     guided = build_method(GuidedGrowth, args)
     hybrid = Hybrid(primary=greedy, fallback=guided)
-    # Dense scans: Yan et al. with the fitted-cylinder options measured best on thick stems (benchmarks/dense.py).
-    dense = VariationalKMeans(axis="normals", radius="fit")
+    # Dense scans: Yan et al. with the options measured best on thick stems and on the TLS trees
+    # (benchmarks/dense.py, config "sylva"): surface-normal axes, least-squares circles, clusters split
+    # down to 30 points, cylinder radii and axes refitted to the points.
+    dense = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
     return {"hybrid": (hybrid, None), "greedy": (greedy, None), "guided": (guided, None),
             "dense": (dense, None), "auto": (hybrid, dense)}[args["METHOD"]]
 
@@ -50,7 +53,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.errors import InputError
     from ..core.export.gltf import write_glb
     from ..core.export.model import ExportFrame, TreeModel
-    from ..core.forest import ModelOptions, model_trees, skeleton_table
+    from ..core.forest import ModelOptions, model_trees, qsm_tables, skeleton_table
     from ..core.measure import tree_metrics
     from ..core.terrain import normalize
 
@@ -85,10 +88,32 @@ def run(args: dict, feedback: Feedback) -> Result:
         columns["model_file"] = np.array([Path(args["MODELS"]).name] * len(trees), dtype=object)
     result.vectors["TREES"] = VectorTable("trees", NO_GEOMETRY, None, columns, cloud.crs)
     result.vectors["SKELETONS"] = skeleton_table(trees, cloud, cloud.crs)
+    feedback.progress(0.95, "quantitative structure models")
+    cylinders, branches, qsm_trees = qsm_tables(trees, cloud, cloud.crs)
+    result.vectors["CYLINDERS"] = cylinders
+    result.vectors["BRANCHES"] = branches
+    if args.get("QSM_FOLDER"):
+        _write_qsm_folder(args["QSM_FOLDER"], cylinders, branches, qsm_trees)
+        result.files["QSM_FOLDER"] = args["QSM_FOLDER"]
+        feedback.info(f"QSM tables written to {args['QSM_FOLDER']}: cylinders.csv, branches.csv, trees.csv")
     counts = {m: sum(t.record["method"] == m for t in trees) for m in sorted({t.record["method"] for t in trees})}
     feedback.info("methods used: " + ", ".join(f"{m} {n}" for m, n in counts.items()))
     feedback.progress(1.0, "done")
     return result
+
+
+def _write_qsm_folder(folder, cylinders, branches, trees) -> None:
+    """cylinders.csv, branches.csv and trees.csv (TreeQSM-like) in ``folder`` (created), each atomically."""
+    from ..core.errors import InputError
+    from ..core.qsm import write_table_csv
+
+    path = Path(folder)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{folder}: cannot create the QSM folder ({exc.strerror})") from None
+    for name, table in (("cylinders", cylinders), ("branches", branches), ("trees", trees)):
+        write_table_csv(path / f"{name}.csv", table)
 
 
 RECONSTRUCT_TREES = Algorithm(
@@ -104,9 +129,14 @@ RECONSTRUCT_TREES = Algorithm(
         "is broken, Guo et al. (2018)'s point-guided space colonisation with crown filling; so every "
         "tree gets a model. Branch radii follow the pipe model (Hu Eq. 6) scaled to the tree's DBH "
         "(measured by a circle fit at 1.3 m when the stem is scanned densely enough, else from height "
-        "and crown diameter by Jucker et al. 2017). Outputs: one GLB with a named node per tree "
-        "(bark and leaf materials, georeferenced), skeleton lines with the radius as M, and the trees "
-        "table with the model's measurements."
+        "and crown diameter by Jucker et al. 2017). METHOD dense is Yan et al. (2009): variational k-means "
+        "clusters with bounding cylinders, a branch graph and B-spline branches, for terrestrial or "
+        "below-canopy scans; auto picks it for the trees dense enough. Outputs: one GLB with a named node "
+        "per tree (bark and leaf materials, georeferenced), skeleton lines with the radius as M, the trees "
+        "table with the model's measurements, and a quantitative structure model (QSM) per tree like "
+        "TreeQSM's: cylinders (3D lines) and branches tables, optionally as CSV files too. Dense trees get "
+        "the cylinders of their B-spline branches and a DBH measured at 1.3 m; other trees one cylinder per "
+        "skeleton segment with the model's radii (column qsm_method says which)."
     ),
     params=(
         input_cloud(" It must carry a treeID dimension (0 = no tree)."),
@@ -129,7 +159,23 @@ RECONSTRUCT_TREES = Algorithm(
               help="MultiLineStringZM per tree: one part per branch chain, M = branch radius (m)."),
         Param("TREES", VECTOR_OUT, "Trees table", geometry=NO_GEOMETRY,
               help="The segmentation's fields plus base_x/y/z, dbh, dbh_source, n_branches, "
-                   "total_branch_length, wood_volume, method, visited_fraction, quality, leaves, model_file."),
+                   "total_branch_length, wood_volume, method, visited_fraction, quality, leaves, flags, "
+                   "qsm_method (bspline_cylinders: Yan et al. cylinders; skeleton_edges: a cylinder per "
+                   "skeleton segment), n_cylinders, trunk_volume and total_volume (m³, sums of the QSM's "
+                   "cylinders), n_branches_order_1..3 and branch_counts (order:count for every order), "
+                   "model_file."),
+        Param("CYLINDERS", VECTOR_OUT, "QSM cylinders", geometry=LINE, optional=True,
+              help="One 3D line per cylinder from its start to its end (TreeQSM-like): tree_id, id, parent "
+                   "(cylinder id, -1 at the stem base), branch, order (0 stem), start_x/y/z (CRS units), "
+                   "axis_x/y/z (unit vector), length and radius (m)."),
+        Param("BRANCHES", VECTOR_OUT, "QSM branches", geometry=NO_GEOMETRY, optional=True,
+              help="One row per branch: tree_id, id, parent (branch id, -1 for the stem), order, "
+                   "n_cylinders, length (m), base_diameter (m), volume (m³), angle_deg to the parent "
+                   "cylinder, base_height (z of its start, CRS units)."),
+        Param("QSM_FOLDER", FOLDER_OUT, "QSM tables (CSV folder)", optional=True,
+              help="A folder with cylinders.csv, branches.csv (as the two layers) and trees.csv (tree_id, "
+                   "dbh_m, dbh_source, height_m, trunk_volume_m3, total_volume_m3, n_cylinders, "
+                   "branches_order<o> per order, qsm_method)."),
     ),
     run=run,
 )

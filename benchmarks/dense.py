@@ -3,9 +3,13 @@
     python benchmarks/dense.py            # synthetic trees, TLS trees, segmentation timing
     python benchmarks/dense.py --quick    # smaller timing runs
     python benchmarks/dense.py --timing   # segmentation timing only
+    python benchmarks/dense.py --only sylva   # one configuration (paper / tls / sylva)
 
 Prints, per method configuration ("paper": Yan's defaults, principal axis +
-enclosing circle; "tls": surface-normal axis + least-squares circles):
+enclosing circle; "tls": surface-normal axis + least-squares circles, the
+first increment's choice; "sylva": what ``sylva:reconstructtrees`` uses now,
+"tls" + clusters split down to 30 points + cylinder radii and axes refitted
+to the points, inner branches dropped after the refit):
 
 * synthetic dense trees with known cylinders (trunk + branches sampled on
   their surfaces with noise, full or one-sided): mean / 95th percentile
@@ -26,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sylva.core.qsm import cylinder_tree, measure_qsm, sample_cylinder_surfaces
+from sylva.core.qsm import cylinder_tree, measure_qsm, sample_cylinder_surfaces, surface_distance
 from sylva.core.reconstruct import TreePoints
 from sylva.core.reconstruct.kmeans import VariationalKMeans, is_dense_scan, segment
 
@@ -36,24 +40,8 @@ TLS = HERE.parents[1].parent / "shared" / "data" / "tls"
 CONFIGS = {
     "paper": VariationalKMeans(),
     "tls": VariationalKMeans(axis="normals", radius="fit"),
+    "sylva": VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30),
 }
-
-
-def surface_distance(points: np.ndarray, cyl: dict, k: int = 16) -> np.ndarray:
-    """Distance (m) from each point to the nearest cylinder surface of a model."""
-    if len(cyl["radius"]) == 0:
-        return np.full(len(points), np.inf)
-    s, a, L, r = cyl["start"], cyl["axis"], cyl["length"], cyl["radius"]
-    mid = s + a * (L / 2)[:, None]
-    k = min(k, len(r))
-    _, idx = cKDTree(mid).query(points, k=k, workers=-1)
-    idx = idx.reshape(len(points), k)
-    p = points[:, None, :] - s[idx]
-    t = (p * a[idx]).sum(axis=2)
-    rho = np.linalg.norm(p - t[..., None] * a[idx], axis=2)
-    out_t = np.maximum(0, np.maximum(-t, t - L[idx]))
-    d = np.where(out_t > 0, np.hypot(np.maximum(rho - r[idx], 0), out_t), np.abs(rho - r[idx]))
-    return d.min(axis=1)
 
 
 def synthetic_specs(kind: str, seed: int):
@@ -95,7 +83,7 @@ def run_tree(name, pts, ground_z, method, truth=None):
     t0 = time.perf_counter()
     model.mesh()
     t_mesh = time.perf_counter() - t0
-    d = surface_distance(pts, model.cylinders) * 100
+    d = surface_distance(pts, model.cylinders) * 100     # sylva.core.qsm.surface_distance
     st = model.reconstruction.stats
     row = dict(tree=name, n=len(pts), clusters=st.get("n_clusters", 0), fixed=st.get("n_fixed", 0),
                branches=len(model.curves), mean_cm=d.mean(), p95_cm=np.percentile(d, 95),
@@ -185,6 +173,11 @@ def main():
     if "--timing" in sys.argv:
         timing(quick)
         return
+    if "--only" in sys.argv:     # --only NAME: one configuration
+        keep = sys.argv[sys.argv.index("--only") + 1]
+        for k in list(CONFIGS):
+            if k != keep:
+                del CONFIGS[k]
     syn = synthetic_trees()
     for name, method in CONFIGS.items():
         print(f"\n=== synthetic dense trees, config {name!r}: {method}")

@@ -13,6 +13,16 @@ leaf cards (:mod:`sylva.core.geometry`, :mod:`sylva.core.leaves`).
 
 Trees with fewer than ``min_points`` points are not dropped: they get the
 minimal stem the reconstruction gives them and ``quality = "noise"``.
+
+Every tree also gets a quantitative structure model (:class:`~sylva.core.qsm.QSM`,
+TreeQSM-like cylinder and branch tables, ``ModelledTree.qsm``): for the
+dense-scan method (Yan et al. 2009, :class:`~sylva.core.reconstruct.VariationalKMeans`)
+the cylinders of its B-spline branches (§4) with the DBH measured at 1.3 m
+above the stem base (``record["qsm_method"] = "bspline_cylinders"``); for
+the other methods one cylinder per skeleton edge with the skeleton's radii
+(``"skeleton_edges"``), measured by :func:`~sylva.core.qsm.measure_qsm` but
+with the DBH of the record.  :func:`qsm_tables` turns them into the
+cylinders / branches / trees tables in CRS coordinates.
 """
 from __future__ import annotations
 
@@ -28,6 +38,7 @@ from .geometry import (branch_count, pipe_model_radii, simplify_skeleton, total_
 from .leaves import LeafCards, NeedleClusters, grow_leaves
 from .measure import TreeMetrics, estimate_dbh
 from .progress import CancelCheck, Progress, check, report
+from .qsm import cylinders_from_skeleton, measure_qsm
 from .reconstruct import Hybrid, TreePoints, is_dense_scan, reconstruct_tree
 
 LEAVES = ("auto", "broadleaf", "needles", "none")
@@ -53,6 +64,12 @@ class ModelledTree:
     wood: Any                     # trimesh.Trimesh, metres, origin at the base
     leaves: Any                   # LeafMesh (origin at the base) or None
     record: dict = field(default_factory=dict)
+    qsm: Any = None               # sylva.core.qsm.QSM, tile-local metres (see qsm_tables)
+
+
+#: Branch orders counted in the record's ``n_branches_order_<o>`` fields (the
+#: full counts are in ``branch_counts``, "order:count" pairs).
+QSM_ORDERS = (1, 2, 3)
 
 
 def _groups(labels: np.ndarray):
@@ -96,20 +113,43 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
         method = options.method
         if options.dense_method is not None and is_dense_scan(xyz):
             method = options.dense_method
-        rec = reconstruct_tree(TreePoints(int(tree_id), xyz, ground_z), method)
+        tree_pts = TreePoints(int(tree_id), xyz, ground_z)
+        dense_qsm = None
+        if hasattr(method, "model") and len(xyz) > 0:
+            # Yan et al. 2009: the full model (B-spline branches, §4) gives the cylinders
+            dense = method.model(tree_pts)
+            rec = dense.reconstruction
+            if len(dense.cylinders["id"]):
+                dense_qsm = measure_qsm(dense.cylinders, dense.branch_parent, xyz, base_z=ground_z,
+                                        tree_id=int(tree_id))
+        else:
+            rec = reconstruct_tree(tree_pts, method)
         tree_h, crown_d = float(metrics.height[i]), float(metrics.crown_diameter[i])
         dbh, source = estimate_dbh(xyz, height[idx], tree_h, crown_d)
         skeleton = simplify_skeleton(rec.skeleton, options.simplify_m) if options.simplify_m > 0 else rec.skeleton
         if skeleton.radius.max() > 0:
             # Dense-scan methods measure radii from fitted cylinders (Yan et al. §4): keep them.
             radii = skeleton.radius
-            if source != "measured":
-                dbh, source = 2.0 * float(radii[skeleton.root]), "cylinder"
+            if dense_qsm is not None and dense_qsm.dbh_source == "measured":
+                dbh, source = dense_qsm.dbh_m, "measured"    # circle fit around the stem cylinder at 1.3 m
+            elif source != "measured":
+                if dense_qsm is not None and np.isfinite(dense_qsm.dbh_m):
+                    dbh, source = dense_qsm.dbh_m, "cylinder"
+                else:
+                    dbh, source = 2.0 * float(radii[skeleton.root]), "cylinder"
         else:
             stem_r = max(dbh, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
             radii = pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2),
                                      trunk_radius_m=stem_r)
         skeleton = with_radii(skeleton, radii)
+        if dense_qsm is not None:
+            qsm, qsm_method = dense_qsm, "bspline_cylinders"
+            qsm.dbh_m, qsm.dbh_source = float(dbh), source
+        else:
+            cyl, bpar = cylinders_from_skeleton(skeleton)
+            qsm = measure_qsm(cyl, bpar, xyz, base_z=ground_z, tree_id=int(tree_id))
+            qsm.dbh_m, qsm.dbh_source = float(dbh), source     # the record's DBH, not the pipe model's
+            qsm_method = "skeleton_edges"
         base = skeleton.nodes[skeleton.root].copy()
         shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
         wood = tree_mesh(shifted, lod=options.lod)
@@ -140,10 +180,16 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
             "quality": quality,
             "leaves": kind,
             "flags": ",".join(rec.flags),
+            "qsm_method": qsm_method,
+            "n_cylinders": int(len(qsm.cylinders["id"])),
+            "trunk_volume": float(qsm.trunk_volume_m3),
+            "total_volume": float(qsm.total_volume_m3),
+            **{f"n_branches_order_{o}": int(qsm.branch_counts.get(o, 0)) for o in QSM_ORDERS},
+            "branch_counts": ",".join(f"{o}:{c}" for o, c in sorted(qsm.branch_counts.items())),
         }
         crs_base = cloud.from_local(base[None, :])[0]
         record.update(base_x=float(crs_base[0]), base_y=float(crs_base[1]), base_z=float(crs_base[2]))
-        out.append(ModelledTree(int(tree_id), base, skeleton, wood, leaves, record))
+        out.append(ModelledTree(int(tree_id), base, skeleton, wood, leaves, record, qsm))
     report(progress, 1.0, "trees modelled")
     return out
 
@@ -164,3 +210,41 @@ def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
     return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
                        {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_chains, dtype=np.int64)},
                        crs if crs is not None else cloud.crs, has_m=True)
+
+
+def qsm_tables(trees: List[ModelledTree], cloud: PointCloud, crs=None):
+    """The QSMs of ``trees`` as (cylinders, branches, trees) VectorTables in CRS coordinates.
+
+    ``cylinders``: a 3-D line from start to end per cylinder with ``tree_id``
+    and the TreeQSM fields (:data:`~sylva.core.qsm.CYLINDER_FIELDS`: start in
+    CRS units, unit axis, length and radius in metres); ``branches``: no
+    geometry (:data:`~sylva.core.qsm.BRANCH_FIELDS` + tree_id, base_height in
+    CRS units); ``trees``: one row per tree (DBH, height, volumes, branch
+    counts by order, see :func:`~sylva.core.qsm.trees_table`) plus the
+    ``qsm_method``.  Trees without a QSM are left out.
+    """
+    from shapely import linestrings
+
+    from .qsm import branches_table, cylinders_table, trees_table
+    from .table import VectorTable
+
+    crs = crs if crs is not None else cloud.crs
+    qs = [t.qsm for t in trees if t.qsm is not None]
+    cyl = cylinders_table(qs, crs, geometry=False)
+    c = cyl.columns
+    start = np.stack([c["start_x"], c["start_y"], c["start_z"]], axis=1).astype(float).reshape(-1, 3)
+    axis = np.stack([c["axis_x"], c["axis_y"], c["axis_z"]], axis=1).astype(float).reshape(-1, 3)
+    end = start + axis * np.asarray(c["length"], dtype=float).reshape(-1, 1)
+    s_crs, e_crs = cloud.from_local(start), cloud.from_local(end)
+    cols = dict(c)
+    cols["start_x"], cols["start_y"], cols["start_z"] = s_crs[:, 0], s_crs[:, 1], s_crs[:, 2]
+    geoms = linestrings(np.stack([s_crs, e_crs], axis=1)) if len(s_crs) else np.zeros(0, dtype=object)
+    cylinders = VectorTable("cylinders", "line", np.asarray(geoms, dtype=object), cols, crs)
+    branches = branches_table(qs, crs)
+    bz = np.asarray(branches.columns["base_height"], dtype=float)
+    if len(bz):
+        branches.columns["base_height"] = cloud.from_local(np.c_[np.zeros((len(bz), 2)), bz])[:, 2]
+    trees_t = trees_table(qs, crs)
+    method = {t.tree_id: t.record.get("qsm_method", "") for t in trees if t.qsm is not None}
+    trees_t.columns["qsm_method"] = np.array([method[int(i)] for i in trees_t.columns["tree_id"]], dtype=object)
+    return cylinders, branches, trees_t

@@ -12,6 +12,8 @@ from sylva.core.reconstruct.kmeans import (VariationalKMeans, bounding_cylinders
 
 TLS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tls"
 TLS_METHOD = VariationalKMeans(axis="normals", radius="fit")
+# what sylva:reconstructtrees uses for dense trees (algorithms/reconstruct.py)
+SYLVA_METHOD = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
 
 
 def psi_tree():
@@ -218,7 +220,106 @@ def test_tls_trees_are_dense_and_reconstruct(name):
     q = measure_qsm(model.cylinders, model.branch_parent, xyz)
     assert 0.02 < q.dbh_m < 0.8
     assert q.height_m == pytest.approx(np.ptp(xyz[:, 2]), abs=0.5)
-    if "few_fixed_clusters" in rec.flags:       # tree13: 5 cm spacing, radii not trusted
-        assert rec.stats["n_fixed"] < 0.25 * rec.stats["n_clusters"]
+    if "sparse_scan" in rec.flags:       # tree13: 19 cm to the 8th neighbour, radii not trusted
+        assert rec.stats["spacing_k_m"] > 0.1
     else:
         assert 0 < q.total_volume_m3 < 3.0          # sanity only: no ground truth for these trees
+    assert ("sparse_scan" in rec.flags) == (name == "tree13")
+    # the points lie close to the refitted model's surface (first increment: 3-18 cm)
+    from sylva.core.qsm import surface_distance
+    refit = SYLVA_METHOD.model(TreePoints(0, xyz, float(xyz[:, 2].min())))
+    d = surface_distance(xyz, refit.cylinders)
+    assert np.mean(d) < {"tree1": 0.03, "tree7": 0.025, "tree13": 0.07}[name]
+
+
+# --------------------------------------------------------------------------- refit, trimming, speed-ups
+
+
+def _branched_tree():
+    """A 45 cm trunk, 8 m, with three order-1 branches and one order-2 branch (known cylinders)."""
+    return cylinder_tree([
+        dict(start=(0, 0, 0), direction=(0, 0, 1), length=8.0, radius=(0.225, 0.06), parent=-1, n=16),
+        dict(start=(0, 0, 3.0), direction=(1, 0, 0.7), length=2.0, radius=(0.08, 0.02), parent=0, n=4),
+        dict(start=(0, 0, 4.2), direction=(-0.6, 0.8, 0.7), length=1.8, radius=(0.07, 0.02), parent=0, n=4),
+        dict(start=(0, 0, 5.4), direction=(0.1, -1, 0.8), length=1.5, radius=(0.06, 0.02), parent=0, n=3),
+        dict(start=(0.82, 0, 3.57), direction=(0.3, 0.8, 0.6), length=0.8, radius=(0.04, 0.015), parent=1, n=2),
+    ])
+
+
+@pytest.fixture(scope="module")
+def branched():
+    truth = _branched_tree()
+    pts = sample_cylinder_surfaces(truth, spacing_m=0.02, noise_m=0.003, seed=7)
+    return truth, pts
+
+
+def test_refit_model_is_close_to_the_surface_and_the_volume(branched):
+    """The refitted model (radii and axes from circle fits, inner branches dropped) against the truth:
+    volumes, DBH and the distance of the points to the model surface."""
+    from sylva.core.qsm import surface_distance
+
+    truth, pts = branched
+    plain = TLS_METHOD.model(TreePoints(0, pts, 0.0))
+    model = SYLVA_METHOD.model(TreePoints(0, pts, 0.0))
+    vol = np.pi * truth["radius"] ** 2 * truth["length"]
+    q = measure_qsm(model.cylinders, model.branch_parent, pts, base_z=0.0)
+    assert q.trunk_volume_m3 == pytest.approx(vol[truth["branch"] == 0].sum(), rel=0.05)
+    assert q.total_volume_m3 == pytest.approx(vol.sum(), rel=0.08)
+    assert q.dbh_source == "measured"
+    d_new = surface_distance(pts, model.cylinders)
+    d_old = surface_distance(pts, plain.cylinders)
+    assert np.mean(d_new) < 0.01 and np.mean(d_new) < np.mean(d_old)
+    assert (d_new <= 0.02).mean() > 0.93
+    # no branch left inside the trunk: every order-1 branch starts at the trunk and leaves it
+    c = model.cylinders
+    for b in np.flatnonzero(model.branch_parent == 0):
+        i = np.flatnonzero(c["branch"] == b)
+        end = c["start"][i[-1]] + c["axis"][i[-1]] * c["length"][i[-1]]
+        assert np.hypot(end[0], end[1]) > 0.6
+    assert model.reconstruction.stats["n_refit_cylinders"] > 0.5 * len(c["radius"])
+    again = SYLVA_METHOD.model(TreePoints(0, pts, 0.0))          # deterministic
+    assert np.array_equal(again.cylinders["radius"], c["radius"]) and np.array_equal(again.cylinders["start"],
+                                                                                     c["start"])
+
+
+def test_branch_running_inside_its_parent_is_trimmed():
+    from sylva.core.reconstruct.kmeans import _trim_in_parent
+
+    parent = np.array([[0, 0, 0.0], [0, 0, 2.0], [0, 0, 4.0]])
+    prad = np.array([0.2, 0.2, 0.2])
+    # a chain that climbs inside the trunk (x = 0.1) from z = 1 to 2.5, then leaves sideways
+    v = np.array([[0.1, 0, 1.0], [0.1, 0, 1.8], [0.1, 0, 2.5], [0.5, 0, 2.8], [1.0, 0, 3.1]])
+    rv = np.array([0.2, 0.2, 0.19, 0.05, 0.03])
+    v2, r2 = _trim_in_parent(v, rv, parent, prad)
+    assert np.allclose(v2[0], [0, 0, 2.5])             # leaves from the parent's centre line
+    assert np.allclose(v2[1:], v[3:]) and np.allclose(r2, [0.05, 0.05, 0.03])
+    # a branch that leaves at once is unchanged
+    v3, r3 = _trim_in_parent(v[2:], rv[2:], parent, prad)
+    assert np.array_equal(v3, v[2:]) and np.array_equal(r3, rv[2:])
+
+
+def test_fast_kernels_match_the_reference():
+    from scipy import sparse
+
+    from sylva.core.reconstruct.kmeans import _flood, _smallest_eigvec, _subgraph
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(4000, 9, 3)) * np.array([1.0, 0.4, 0.02])
+    x -= x.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", x, x)
+    v = _smallest_eigvec(cov)
+    ref = np.linalg.eigh(cov)[1][:, :, 0]
+    assert np.allclose(np.abs((v * ref).sum(axis=1)), 1.0, atol=1e-9)
+    line = np.zeros((5, 3, 3))
+    line[:, 2, 2] = 1.0                                # double zero eigenvalue: falls back to eigh
+    assert np.allclose(np.abs(_smallest_eigvec(line)[:, 2]), 0.0)
+    xyz = tube(3000, 0.05, 1.0, seed=6)
+    g, _ = knn_graph(xyz, 8)
+    mask = rng.uniform(size=len(xyz)) < 0.4
+    sub = _subgraph(g, mask)
+    idx = np.flatnonzero(mask)
+    assert (sub != g[idx][:, idx]).nnz == 0
+    seeds = np.array([0, 1000, 2000])
+    lab, _ = _flood(g, seeds)
+    dist = sparse.csgraph.dijkstra(g, unweighted=True, indices=seeds)
+    assert np.all(dist[lab, np.arange(len(xyz))] == dist.min(axis=0))   # every point joins a nearest seed

@@ -116,3 +116,55 @@ def test_one_sided_sampling_keeps_half():
     assert len(half) == pytest.approx(len(full) / 2, rel=0.05)
     assert np.all(half[:, 0] <= 1e-9)
     assert np.allclose(np.hypot(full[:, 0], full[:, 1]), 0.1)
+
+
+def test_cylinders_from_a_skeleton_with_radii():
+    from sylva.core.qsm import cylinders_from_skeleton
+    from sylva.core.reconstruct.model import Skeleton
+
+    nodes = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 2], [0, 0, 3], [0.5, 0, 2.5], [1.0, 0, 3.0]], float)
+    parent = np.array([-1, 0, 1, 2, 2, 4])
+    radius = np.array([0.2, 0.15, 0.1, 0.05, 0.04, 0.02])
+    cyl, bpar = cylinders_from_skeleton(Skeleton(nodes, parent, radius))
+    assert bpar.tolist() == [-1, 0]
+    assert cyl["branch"].tolist() == [0, 0, 0, 1, 1]
+    assert cyl["radius"].tolist() == [0.15, 0.1, 0.05, 0.04, 0.02]     # each edge: its child node's radius
+    assert cyl["length"] == pytest.approx([1, 1, 1, np.sqrt(0.5), np.sqrt(0.5)])
+    # the side branch hangs off a trunk cylinder touching its fork at z = 2
+    p = cyl["parent"][3]
+    assert cyl["branch"][p] == 0 and 1.0 <= cyl["start"][p, 2] <= 2.0
+    q = measure_qsm(cyl, bpar, base_z=0.0)
+    assert q.total_volume_m3 == pytest.approx(np.pi * (0.15 ** 2 + 0.1 ** 2 + 0.05 ** 2
+                                                       + np.sqrt(0.5) * (0.04 ** 2 + 0.02 ** 2)))
+    assert q.branch_counts == {1: 1}
+
+
+def test_refit_radii_recovers_true_radii_and_axis_offsets():
+    from sylva.core.qsm import refit_radii, surface_distance, taper_radii
+
+    truth = two_level_tree()
+    pts = sample_cylinder_surfaces(truth, spacing_m=0.01, noise_m=0.002, seed=4)
+    guess = dict(truth)
+    guess["radius"] = truth["radius"] * 0.7                     # biased radii (as enclosing circles of patches)
+    shifted = dict(guess)
+    shifted["start"] = truth["start"] + np.array([0.02, 0.0, 0.0])   # and an axis 2 cm off
+    out, good, shift = refit_radii(pts, shifted, return_shift=True)
+    assert good[:12].all()
+    assert out["radius"][good] == pytest.approx(truth["radius"][good], abs=0.004)
+    trunk = np.arange(12)
+    assert np.allclose(shift[trunk, 0], -0.02, atol=0.004) and np.allclose(shift[trunk, 1:], 0, atol=0.004)
+    d0 = surface_distance(pts, truth)
+    assert np.median(d0) < 0.003
+    # a thin branch without a circle (points on a line) takes the median distance to its axis
+    line = cylinders_from_curves([np.array([[0, 0, 0], [0, 0, 1.0]])], [np.array([0.2, 0.2])], [-1])
+    rng = np.random.default_rng(0)
+    p = np.c_[rng.normal(0, 0.01, 200), np.zeros(200), rng.uniform(0, 1, 200)]
+    out, good = refit_radii(p, line)
+    assert not good[0] and out["radius"][0] == pytest.approx(np.median(np.abs(p[:, 0])), rel=0.05)
+    # taper: a branch is never thicker than the cylinder it leaves
+    fat = dict(truth)
+    fat["radius"] = truth["radius"].copy()
+    fat["radius"][12] = 0.5
+    tp = taper_radii(fat)
+    assert tp["radius"][12] == pytest.approx(truth["radius"][fat["parent"][12]])
+    assert np.array_equal(tp["radius"][13:], truth["radius"][13:])

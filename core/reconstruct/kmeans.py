@@ -31,6 +31,18 @@ reconstruction of botanical branching structure from laser scanned points"
    ``n2 = 10`` sides and 30 samples per branch as in §4.2 / §5), and the
    resulting cylinder list (:mod:`sylva.core.qsm`).
 
+Additions that are not in the paper, each measured by ``benchmarks/dense.py``:
+a branch whose first clusters run inside its parent (a second chain of
+clusters up the other side of a thick stem) leaves from the parent's centre
+line where it exits the parent (:func:`_trim_in_parent`); with
+``refit=True`` the cylinders' radii and axes are fitted to the points
+nearest each (circle fits, :func:`sylva.core.qsm.refit_radii`), the centre
+lines moved onto the fitted axes (:func:`_recentre`), a branch's base inside
+its parent gets its first outside radius, no branch is thicker than the
+cylinder it leaves (:func:`sylva.core.qsm.taper_radii`), and branches whose
+fitted curve stays within ``prune_factor`` radii of an earlier branch are dropped
+(:func:`_outside_earlier_branches`).
+
 All thresholds are in metres (the paper normalised each scan into the unit
 cube; its δ in [1e-3, 1e-2] of the tree size is 1–10 cm for a 10 m tree).
 
@@ -59,6 +71,9 @@ __all__ = ["VariationalKMeans", "Segmentation", "BranchStructure", "DenseModel",
            "prune_branches"]
 
 _EPS = 1e-12
+#: Lloyd re-floods only the clusters whose seed moved (and their neighbours) on graphs of
+#: more points than this; smaller graphs are flooded whole, which is faster there.
+LOCAL_FLOOD_MIN_POINTS = 100_000
 
 
 # --------------------------------------------------------------------------- §2.1 kNN graph
@@ -82,19 +97,21 @@ def knn_graph(xyz: np.ndarray, k: int = 8) -> Tuple[sparse.csr_matrix, np.ndarra
 # --------------------------------------------------------------------------- §2.2 Lloyd
 
 def _group_argmin(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
-    """Per label, the index of the smallest value (lowest index on ties; -1 for empty labels)."""
+    """Per label, the index of the smallest value (lowest index on ties; -1 for empty labels).
+
+    Unbuffered ``minimum.at`` twice (group minima, then the first index
+    reaching them): no sort, O(m)."""
     out = np.full(n, -1, dtype=np.int64)
-    if len(values) == 0:
+    m = len(values)
+    if m == 0:
         return out
-    order = np.argsort(labels, kind="stable")
-    lab = labels[order]
-    v = values[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    gmin = np.minimum.reduceat(v, starts)
-    gid = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(lab)]))
-    pos = np.where(v <= gmin[gid], np.arange(len(v)), len(v))
-    first = np.minimum.reduceat(pos, starts)
-    out[lab[starts]] = order[first]
+    gmin = np.full(n, np.inf)
+    np.minimum.at(gmin, labels, values)
+    cand = np.flatnonzero(values <= gmin[labels])
+    first = np.full(n, m, dtype=np.int64)
+    np.minimum.at(first, labels[cand], cand)
+    ok = first < m
+    out[ok] = first[ok]
     return out
 
 
@@ -127,6 +144,24 @@ def _csr_rows(indptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.arange(cnt.sum()) + off
 
 
+def _subgraph(graph: sparse.csr_matrix, mask: np.ndarray) -> sparse.csr_matrix:
+    """The CSR graph induced by the nodes where ``mask`` (renumbered in order), built from
+    the CSR arrays of those rows only (no sparse fancy indexing, no re-sorting)."""
+    ip, ix = graph.indptr, graph.indices
+    idx = np.flatnonzero(mask)
+    m = len(idx)
+    if m == len(mask):
+        return graph
+    pos = _csr_rows(ip, idx)
+    cnt = ip[idx + 1] - ip[idx]
+    keep = mask[ix[pos]]
+    loc = np.full(len(mask), -1, dtype=np.int64)
+    loc[idx] = np.arange(m)
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.bincount(np.repeat(np.arange(m), cnt)[keep], minlength=m), out=indptr[1:])
+    return sparse.csr_matrix((graph.data[pos[keep]], loc[ix[pos[keep]]], indptr), shape=(m, m), copy=False)
+
+
 def _flood(graph: sparse.csr_matrix, seeds: np.ndarray, metric: str = "hops"):
     """Grow one region per seed at once: the nearest seed of every point on the kNN graph.
 
@@ -154,14 +189,18 @@ def _flood(graph: sparse.csr_matrix, seeds: np.ndarray, metric: str = "hops"):
         _, pred = csgraph.breadth_first_order(aug, n, directed=True, return_predecessors=True)
         pred = pred[:n].astype(np.int64)
         reached = pred >= 0
-    # each seed's subtree of the search tree is one connected component of the
-    # predecessor forest (the virtual node removed)
-    child = np.flatnonzero(reached & (pred != n) & (pred >= 0))
-    forest = sparse.csr_matrix((np.ones(len(child)), (child, pred[child])), shape=(n, n))
-    _, comp = csgraph.connected_components(forest, directed=False)
+    # each point's seed: the root of its branch of the search tree, found by
+    # pointer jumping (log2(depth) vectorised gathers)
+    ptr = np.where(reached & (pred >= 0) & (pred < n), pred, np.arange(n))
+    ptr[seeds] = seeds
+    while True:
+        nxt = ptr[ptr]
+        if np.array_equal(nxt, ptr):
+            break
+        ptr = nxt
     lut = np.full(n, -1, dtype=np.int64)
-    lut[comp[seeds]] = np.arange(len(seeds))
-    lab = np.where(reached, lut[comp], -1)
+    lut[seeds] = np.arange(len(seeds))
+    lab = np.where(reached, lut[ptr], -1)
     if metric != "metres":
         dist = np.where(reached, 0.0, np.inf)   # hop counts are not needed downstream
     return lab, dist
@@ -241,7 +280,7 @@ def lloyd(xyz: np.ndarray, graph: sparse.csr_matrix, seeds: np.ndarray, max_iter
         aff[nb_lab[nb_lab >= 0]] = True
         region = (lab < 0) | aff[np.maximum(lab, 0)]
         ridx = np.flatnonzero(region)
-        g = graph[ridx][:, ridx]
+        g = _subgraph(graph, region)
         loc = np.full(npt, -1, dtype=np.int64)
         loc[ridx] = np.arange(len(ridx))
         acl = np.flatnonzero(aff)
@@ -323,8 +362,43 @@ def point_normals(xyz: np.ndarray, nbr: np.ndarray) -> np.ndarray:
     q = np.concatenate([xyz[:, None, :], xyz[nbr]], axis=1)
     q = q - q.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", q, q)
-    _, vec = np.linalg.eigh(cov)
-    return vec[:, :, 0]
+    return _smallest_eigvec(cov)
+
+
+def _smallest_eigvec(a: np.ndarray) -> np.ndarray:
+    """Unit eigenvector of the smallest eigenvalue of each symmetric 3x3 matrix (n, 3, 3).
+
+    Closed form: the eigenvalues by the trigonometric solution of the
+    characteristic cubic, the vector as the largest cross product of two rows
+    of ``A - λ_min I``; matrices where that is ill-conditioned (two nearly
+    equal smallest eigenvalues, e.g. points on a line) fall back to ``eigh``.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    n = len(a)
+    if n == 0:
+        return np.zeros((0, 3))
+    scale = np.maximum(np.abs(a).reshape(n, 9).max(axis=1), 1e-300)
+    b = a / scale[:, None, None]
+    q = (b[:, 0, 0] + b[:, 1, 1] + b[:, 2, 2]) / 3
+    p1 = b[:, 0, 1] ** 2 + b[:, 0, 2] ** 2 + b[:, 1, 2] ** 2
+    p2 = (b[:, 0, 0] - q) ** 2 + (b[:, 1, 1] - q) ** 2 + (b[:, 2, 2] - q) ** 2 + 2 * p1
+    p = np.sqrt(np.maximum(p2 / 6, 0))
+    c = b - q[:, None, None] * np.eye(3)
+    det = np.linalg.det(c / np.maximum(p, 1e-300)[:, None, None])
+    phi = np.arccos(np.clip(det / 2, -1, 1)) / 3
+    lam = q + 2 * p * np.cos(phi + 2 * np.pi / 3)          # the smallest root
+    m = b - lam[:, None, None] * np.eye(3)
+    cr = np.stack([np.cross(m[:, 0], m[:, 1]), np.cross(m[:, 0], m[:, 2]), np.cross(m[:, 1], m[:, 2])], axis=1)
+    nn = np.einsum("nki,nki->nk", cr, cr)
+    best = np.argmax(nn, axis=1)
+    v = cr[np.arange(n), best]
+    norm = np.sqrt(nn[np.arange(n), best])
+    # ill-conditioned: the cross product is small against the matrix (double smallest eigenvalue)
+    bad = norm < 1e-6 * np.maximum(p, 1e-12) ** 2
+    out = v / np.maximum(norm, 1e-300)[:, None]
+    if bad.any():
+        out[bad] = np.linalg.eigh(a[bad])[1][:, :, 0]
+    return out
 
 
 def bounding_cylinders(xyz: np.ndarray, labels: np.ndarray, n: int, normals: Optional[np.ndarray] = None):
@@ -487,8 +561,6 @@ def segment(xyz: np.ndarray, k: int = 8, n_seeds: int = 0, delta_m: float = 0.03
     missing = np.setdiff1d(big, comp[s0])
     extra = [int(rng.choice(np.flatnonzero(comp == c))) for c in missing]
     seeds = np.unique(np.r_[s0, np.asarray(extra, dtype=np.int64)]).astype(np.int64)
-    coo = graph.tocoo()
-    e_row, e_col, e_w = coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data
 
     labels = np.full(n, -1, dtype=np.int64)
     fixed = np.zeros(0, dtype=bool)
@@ -505,10 +577,11 @@ def segment(xyz: np.ndarray, k: int = 8, n_seeds: int = 0, delta_m: float = 0.03
         act_idx = np.flatnonzero(active)
         lp = np.full(n, -1, dtype=np.int64)
         lp[act_idx] = np.arange(len(act_idx))
-        keep_e = active[e_row] & active[e_col]
-        m = len(act_idx)
-        g = sparse.csr_matrix((e_w[keep_e], (lp[e_row[keep_e]], lp[e_col[keep_e]])), shape=(m, m))
-        lab, s_loc, dist, en = lloyd(xyz[act_idx], g, lp[new_seeds], max_iter, epsilon_rel, metric=metric)
+        g = _subgraph(graph, active)
+        # local re-flooding (see lloyd) pays off on big graphs only (benchmarks/dense.py:
+        # 34,542 points 20 % faster without, 217,187 points 8 % faster with)
+        lab, s_loc, dist, en = lloyd(xyz[act_idx], g, lp[new_seeds], max_iter, epsilon_rel,
+                                     local=len(act_idx) > LOCAL_FLOOD_MIN_POINTS, metric=metric)
         base = len(all_seeds)
         labels[act_idx] = np.where(lab >= 0, lab + base, -1)
         all_seeds = np.r_[all_seeds, act_idx[s_loc]]
@@ -859,7 +932,15 @@ def prune_branches(seg: Segmentation, st: BranchStructure, factor: float = 1.5,
 
 
 def _fit_bspline(pts: np.ndarray, samples: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Cubic B-spline through the branch vertices (Yan §4.1, Eq. 2); returns samples and their parameter."""
+    """Cubic B-spline through the branch vertices (Yan §4.1, Eq. 2); returns samples and their parameter.
+
+    The curve interpolates the vertices (chord-length parameters).  §4.1
+    approximates them with ``n`` control points on uniform knots, ``n`` left
+    open; least-squares fits tried here (``m / 1.3`` and ``m / 2`` control
+    points for ``m`` vertices) oscillated on the uneven vertex spacing of
+    sparse branches, and the radius/axis refit (:func:`sylva.core.qsm.refit_radii`)
+    corrects the zigzag of the interpolating curve instead.
+    """
     from scipy.interpolate import splev, splprep
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     keep = np.r_[True, seg > 1e-6]
@@ -869,20 +950,50 @@ def _fit_bspline(pts: np.ndarray, samples: int) -> Tuple[np.ndarray, np.ndarray]
     u = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
     u = u / u[-1]
     kdeg = min(3, len(pts) - 1)
+    uu = np.linspace(0, 1, max(2, samples))
     try:
         tck, _ = splprep(pts.T, u=u, k=kdeg, s=0.0)
-        uu = np.linspace(0, 1, max(2, samples))
         return np.stack(splev(uu, tck), axis=1), uu
     except Exception:  # scipy raises for degenerate inputs; fall back to the polyline
-        uu = np.linspace(0, 1, max(2, samples))
         return np.stack([np.interp(uu, u, pts[:, j]) for j in range(3)], axis=1), uu
 
 
-def model_branches(seg: Segmentation, st: BranchStructure, samples: int = 30, radius: str = "bounding"):
+def _trim_in_parent(v: np.ndarray, rv: np.ndarray, pv: np.ndarray, prv: np.ndarray):
+    """Cut the start of a branch that runs inside its parent's tube (not in Yan et al.).
+
+    On a stem much thicker than the clusters, the shortest-path tree (§3.2)
+    often reaches a side branch through a second chain of clusters on the
+    other side of the bark, parallel to the trunk's own chain; Algorithm 3.1
+    then makes that chain the start of the branch, and its cylinders lie
+    inside the trunk (doubling its volume).  The branch is made to leave from
+    the parent's centre line at its last vertex inside the parent's surface
+    (ratio of distance to the parent's centre line over the parent's radius
+    there <= 1): that vertex is replaced by its projection on the parent line
+    and the vertices before it are dropped.  A branch entirely inside is kept.
+    """
+    ratio = _tube_ratio(v, pv, prv)
+    out = np.flatnonzero(ratio > 1.0)
+    if len(out) == 0 or out[0] <= 1:
+        return v, rv
+    j = int(out[0]) - 1            # last vertex inside before the branch leaves the parent
+    if len(pv) < 2:
+        foot = pv[0]
+    else:
+        a, b = pv[:-1], pv[1:]
+        ab = b - a
+        t = np.clip(((v[j] - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
+        cand = a + t[:, None] * ab
+        foot = cand[int(np.argmin(np.linalg.norm(cand - v[j], axis=1)))]
+    return np.vstack([foot[None], v[j + 1:]]), np.r_[rv[j + 1], rv[j + 1:]]
+
+
+def model_branches(seg: Segmentation, st: BranchStructure, samples: int = 30, radius: str = "bounding",
+                   trim: bool = True):
     """Yan §4: per branch the skeleton vertices (fork centre, junctions and centres, tip
     junction), a cubic B-spline through them sampled at ``samples`` points, radii
-    interpolated linearly from the bounding cylinders.  Returns (curves, radii, vertices,
-    vertex_radii)."""
+    interpolated linearly from the bounding cylinders.  With ``trim`` a branch's
+    vertices inside its parent's tube are cut (:func:`_trim_in_parent`).  Returns
+    (curves, radii, vertices, vertex_radii)."""
     curves, radii, verts, vrad = [], [], [], []
     own_r = []
     for bi, chain in enumerate(st.branches):
@@ -913,6 +1024,8 @@ def model_branches(seg: Segmentation, st: BranchStructure, samples: int = 30, ra
             rv.append(r_own[-1])
         v = np.asarray(v)
         rv = np.asarray(rv)
+        if pb >= 0 and trim and len(v) > 2:
+            v, rv = _trim_in_parent(v, rv, verts[pb], vrad[pb])
         verts.append(v)
         vrad.append(rv)
         n_s = max(samples, 2) if len(v) > 2 else 2
@@ -922,6 +1035,165 @@ def model_branches(seg: Segmentation, st: BranchStructure, samples: int = 30, ra
         curves.append(curve)
         radii.append(np.interp(uu, s, rv) if len(uu) == len(curve) else np.full(len(curve), rv.mean()))
     return curves, radii, verts, vrad
+
+
+def _outside_earlier_branches(curves, radii, branch_parent, factor: float) -> np.ndarray:
+    """Branches to keep after modelling (not in Yan et al.).
+
+    A branch is dropped when every sample of its B-spline curve lies within
+    ``factor`` radii (of the final model) of the centre line of an earlier
+    branch (its ancestors, and the earlier branches it duplicates: at a fork
+    on a thick stem the shortest-path tree of §3.2 often reaches the same limb
+    through two or three parallel chains of clusters, each of which Algorithm
+    3.1 makes a branch), unless it carries a kept branch.  As
+    :func:`prune_branches`, on the fitted curves and radii; children are
+    examined before parents.
+    """
+    nb = len(curves)
+    bp = np.asarray(branch_parent, dtype=np.int64)
+    keep = np.ones(nb, dtype=bool)
+    has_kept_child = np.zeros(nb, dtype=bool)
+    # all centre-line segments of all branches, with their branch, end points and radii
+    sa, sb, ra, rb, sid = [], [], [], [], []
+    for b, (c, r) in enumerate(zip(curves, radii)):
+        c, r = np.asarray(c, dtype=np.float64).reshape(-1, 3), np.asarray(r, dtype=np.float64).reshape(-1)
+        if len(c) >= 2:
+            sa.append(c[:-1]), sb.append(c[1:]), ra.append(r[:-1]), rb.append(r[1:])
+            sid.append(np.full(len(c) - 1, b))
+        elif len(c) == 1:
+            sa.append(c), sb.append(c), ra.append(r[:1]), rb.append(r[:1]), sid.append(np.full(1, b))
+    if not sa:
+        return keep
+    sa, sb, ra, rb, sid = (np.concatenate(x) for x in (sa, sb, ra, rb, sid))
+    ab = sb - sa
+    ab2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
+    # candidates: the segments with the nearest mid-points of each sample (all branches)
+    tree = cKDTree((sa + sb) / 2)
+    kq = int(min(48, len(sa)))
+    for b in range(nb - 1, 0, -1):
+        if bp[b] < 0:
+            continue
+        if not has_kept_child[b]:
+            pts = np.asarray(curves[b], dtype=np.float64).reshape(-1, 3)
+            if len(pts):
+                _, ci = tree.query(pts, k=kq)
+                ci = ci.reshape(len(pts), kq)
+                ok = (sid[ci] < b) & keep[sid[ci]]
+                a0, v = sa[ci], ab[ci]
+                t = np.clip(((pts[:, None] - a0) * v).sum(2) / ab2[ci], 0, 1)
+                d = np.linalg.norm(pts[:, None] - (a0 + t[..., None] * v), axis=2)
+                ratio = np.where(ok, d / np.maximum(ra[ci] + t * (rb[ci] - ra[ci]), 1e-6), np.inf)
+                keep[b] = bool((ratio.min(axis=1) > factor).any())
+        if keep[b]:
+            has_kept_child[int(bp[b])] = True
+    return keep
+
+
+def _keep_branches(st: BranchStructure, cyl: dict, keep: np.ndarray):
+    """The branch structure and cylinder table restricted to the kept branches (renumbered;
+    a kept branch's parent is always kept)."""
+    new_id = np.cumsum(keep) - 1
+    nb = len(keep)
+    branches = [st.branches[b] for b in range(nb) if keep[b]]
+    bpar = np.array([new_id[st.branch_parent[b]] if st.branch_parent[b] >= 0 else -1
+                     for b in range(nb) if keep[b]], dtype=np.int64)
+    st2 = BranchStructure(st.parent, st.root, st.junction, st.tip, st.centre, branches, bpar,
+                          st.branch_order[keep], st.n_edges, st.bridged)
+    rows = keep[cyl["branch"]]
+    cid = np.full(len(rows), -1, dtype=np.int64)
+    cid[rows] = np.arange(int(rows.sum()))
+    out = {k: v[rows] for k, v in cyl.items()}
+    out["id"] = np.arange(int(rows.sum()), dtype=np.int64)
+    par = cyl["parent"][rows]
+    out["parent"] = np.where(par >= 0, cid[np.maximum(par, 0)], -1)
+    out["branch"] = new_id[cyl["branch"][rows]]
+    return st2, out
+
+
+def _recentre(curves, cyl: dict, shift: np.ndarray, good: np.ndarray, branch_parent):
+    """Move each branch's centre line onto the axes of its refitted circles (not in Yan et al.).
+
+    A curve sample moves by the mean offset of the refitted cylinders on either
+    side of it (:func:`sylva.core.qsm.refit_radii`); the first sample of a
+    branch (its fork on the parent's centre line) stays.  The cylinders are
+    rebuilt from the moved curves with their radii.  Branches whose cylinders
+    do not match their samples one to one are left as they are.
+    """
+    from ..qsm import cylinders_from_curves
+    new_curves, seg_r = [], []
+    for b, c in enumerate(curves):
+        idx = np.flatnonzero(cyl["branch"] == b)
+        c = np.asarray(c, dtype=np.float64)
+        if len(idx) != len(c) - 1 or len(idx) == 0:
+            new_curves.append(c)
+            seg_r.append(cyl["radius"][idx] if len(idx) == len(c) - 1 else
+                         np.full(max(len(c) - 1, 0), cyl["radius"][idx].mean() if len(idx) else 0.0))
+            continue
+        sh, ok = shift[idx], good[idx].astype(float)
+        num = np.zeros((len(c), 3))
+        den = np.zeros(len(c))
+        for off in (0, 1):      # cylinder i touches samples i and i + 1
+            num[off:len(c) - 1 + off] += sh * ok[:, None]
+            den[off:len(c) - 1 + off] += ok
+        move = num / np.maximum(den, 1)[:, None]
+        if branch_parent[b] >= 0:
+            move[0] = 0.0
+        new_curves.append(c + move)
+        seg_r.append(cyl["radius"][idx])
+    return new_curves, cylinders_from_curves(new_curves, seg_r, branch_parent, segment_radii=True)
+
+
+def _inside_parent_radii(cyl: dict, branch_parent) -> dict:
+    """Cylinders at the base of a branch that lie inside the parent branch take the radius
+    of the branch's first cylinder outside it (not in Yan et al.).
+
+    A branch leaves from the parent's centre line (§4.1, the fork cluster's
+    centre); the points nearest its first cylinders are the parent's bark, so
+    their refitted radii are the parent's.  Inside = the mid-point within the
+    parent's radius of the parent's centre line.
+    """
+    out = dict(cyl)
+    r = np.asarray(cyl["radius"], dtype=np.float64).copy()
+    br = cyl["branch"]
+    mid = cyl["start"] + cyl["axis"] * (cyl["length"] / 2)[:, None]
+    for b, pb in enumerate(np.asarray(branch_parent).tolist()):
+        if pb < 0:
+            continue
+        idx = np.flatnonzero(br == b)
+        pidx = np.flatnonzero(br == pb)
+        if len(idx) < 2 or len(pidx) == 0:
+            continue
+        line = np.vstack([cyl["start"][pidx], cyl["start"][pidx[-1]] + cyl["axis"][pidx[-1]] * cyl["length"][pidx[-1]]])
+        lr = np.r_[r[pidx], r[pidx[-1]]]
+        inside = _tube_ratio(mid[idx], line, lr) <= 1.0
+        if not inside[0] or inside.all():
+            continue
+        first_out = int(np.argmin(inside))         # first cylinder outside the parent
+        r[idx[:first_out]] = r[idx[first_out]]
+    out["radius"] = r
+    return out
+
+
+def _radii_from_cylinders(cyl: dict, curves, radii, verts, vrad):
+    """Per-sample and per-vertex radii of each branch from its (refitted) cylinders:
+    a sample between two cylinders gets their mean, an end sample its cylinder's,
+    a skeleton vertex the radius of the branch's cylinder with the nearest mid-point."""
+    new_r, new_v = [], []
+    mid = cyl["start"] + cyl["axis"] * (cyl["length"] / 2)[:, None]
+    for b, (c, r, v, rv) in enumerate(zip(curves, radii, verts, vrad)):
+        idx = np.flatnonzero(cyl["branch"] == b)
+        cr = cyl["radius"][idx]
+        if len(idx) == 0:
+            new_r.append(r)
+            new_v.append(rv)
+            continue
+        if len(idx) == len(c) - 1:
+            new_r.append(np.r_[cr[0], (cr[:-1] + cr[1:]) / 2, cr[-1]])
+        else:
+            new_r.append(r)
+        dd = np.linalg.norm(np.asarray(v)[:, None, :] - mid[idx][None], axis=2)
+        new_v.append(cr[np.argmin(dd, axis=1)])
+    return new_r, new_v
 
 
 def _skeleton_from(st: BranchStructure, verts, vrad) -> Skeleton:
@@ -967,6 +1239,11 @@ DENSE_LOW_SHARE = 0.03
 DENSE_LOW_M = 2.0
 #: A dense scan also needs this many points (too few points carry no branches).
 DENSE_MIN_POINTS = 2000
+#: Median distance (m) to the k-th (8th) neighbour above which a dense-scan model is
+#: flagged ``sparse_scan``: branches thinner than that spacing get guessed radii, and
+#: volumes are not to be trusted (TLS tree13 of ../shared/data/tls: 0.19 m; trees 1
+#: and 7: 0.06 / 0.03 m).
+SPARSE_SPACING_M = 0.1
 
 
 def is_dense_scan(xyz: np.ndarray, spacing_m: float = DENSE_SPACING_M, low_share: float = DENSE_LOW_SHARE,
@@ -1018,7 +1295,10 @@ class VariationalKMeans:
     ``radius`` ``"bounding"`` (§2.3 enclosing circle, biased up by noise)
     or ``"fit"`` (least-squares circle, also used for the δ test, and
     skeleton vertices of fixed clusters on their axes, see
-    :func:`branch_structure`); ``seed`` of the random initial seeds.
+    :func:`branch_structure`); ``refit`` replaces the radii of the final
+    cylinders by circle fits to the points nearest each
+    (:func:`sylva.core.qsm.refit_radii`, not in the paper); ``seed`` of the
+    random initial seeds.
     """
 
     k: int = 8
@@ -1035,6 +1315,7 @@ class VariationalKMeans:
     metric: str = "hops"
     axis: str = "pca"
     radius: str = "bounding"
+    refit: bool = False
     seed: int = 0
 
     name = "variational_kmeans"
@@ -1055,7 +1336,7 @@ class VariationalKMeans:
     def model(self, tree: TreePoints, progress: Progress = None,
               cancelled: CancelCheck = None) -> DenseModel:
         """Run Yan §2–§4 on one tree; the full :class:`DenseModel`."""
-        from ..qsm import cylinders_from_curves
+        from ..qsm import cylinders_from_curves, refit_radii, taper_radii
         t_all = time.perf_counter()
         xyz = tree.xyz
         if len(xyz) == 0:
@@ -1103,14 +1384,41 @@ class VariationalKMeans:
         check(cancelled)
         t0 = time.perf_counter()
         curves, radii, verts, vrad = model_branches(seg, st, self.samples, self.radius)
-        skel = _skeleton_from(st, verts, vrad)
         cyl = cylinders_from_curves(curves, radii, st.branch_parent)
+        if self.refit:
+            cyl, refit, shift = refit_radii(xyz, cyl, return_shift=True)
+            curves, cyl = _recentre(curves, cyl, shift, np.any(shift != 0, axis=1), st.branch_parent)
+            cyl, refit = refit_radii(xyz, cyl)
+            cyl = taper_radii(_inside_parent_radii(cyl, st.branch_parent))
+            stats["n_refit_cylinders"] = int(refit.sum())
+            radii, vrad = _radii_from_cylinders(cyl, curves, radii, verts, vrad)
+        if self.prune_factor > 0 and len(curves) > 1:
+            keep = _outside_earlier_branches(curves, radii, st.branch_parent, self.prune_factor)
+            stats["n_pruned_branches"] = stats.get("n_pruned_branches", 0) + int((~keep).sum())
+            if not keep.all():
+                st, cyl = _keep_branches(st, cyl, keep)
+                curves = [c for c, k in zip(curves, keep) if k]
+                radii = [r for r, k in zip(radii, keep) if k]
+                verts = [v for v, k in zip(verts, keep) if k]
+                vrad = [r for r, k in zip(vrad, keep) if k]
+                stats["n_branches"] = len(st.branches)
+                if self.refit:   # the points of the dropped branches go to the kept cylinders
+                    cyl, refit = refit_radii(xyz, cyl)
+                    cyl = taper_radii(_inside_parent_radii(cyl, st.branch_parent))
+                    stats["n_refit_cylinders"] = int(refit.sum())
+                    radii, vrad = _radii_from_cylinders(cyl, curves, radii, verts, vrad)
+        skel = _skeleton_from(st, verts, vrad)
         stats["t_modelling_s"] = time.perf_counter() - t0
         stats["n_nodes"] = int(len(skel))
         if st.bridged:
             flags.append("graph_disconnected")
         if seg.reason == "budget":
             flags.append("cluster_budget_reached")
+        spacing = float(np.median(np.linalg.norm(xyz[seg.nbr[:, -1]] - xyz, axis=1))) if len(seg.nbr) else 0.0
+        stats["spacing_k_m"] = spacing
+        if spacing > SPARSE_SPACING_M:
+            # branches thinner than the point spacing: their radii are guesses
+            flags.append("sparse_scan")
         if seg.n_clusters and seg.fixed.mean() < 0.25:
             # most clusters are not cylinders within delta (sparse or very noisy
             # points): their radii are loose and volumes are not to be trusted
