@@ -12,7 +12,7 @@ from .common import build_method, crs_override, drop_noise, input_cloud, load_cl
 from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param,
                    Result)
 
-METHODS = ("hybrid", "greedy", "guided", "dense", "auto")
+METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed")
 
 GREEDY_PARAMS = method_params(GreedySkeleton, {
     "voxel_m": ("Thinning voxel d_l (m)", "Greedy skeleton: voxel pitch of the thinning (Hu et al. §5.1, §6.2: 0.2 m)."),
@@ -45,6 +45,10 @@ def _methods(args):
     # (benchmarks/dense.py, config "sylva"): surface-normal axes, least-squares circles, clusters split
     # down to 30 points, cylinder radii and axes refitted to the points.
     dense = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
+    if args["METHOD"] == "completed":
+        from ..core.reconstruct.sketch import SketchCompletion
+
+        return SketchCompletion(primary=hybrid), None
     return {"hybrid": (hybrid, None), "greedy": (greedy, None), "guided": (guided, None),
             "dense": (dense, None), "auto": (hybrid, dense)}[args["METHOD"]]
 
@@ -144,7 +148,10 @@ RECONSTRUCT_TREES = Algorithm(
               help="hybrid: greedy skeleton, guided growth where it fails (Hu §6.2); greedy: Hu et al. "
                    "only; guided: Guo et al. only; dense: Yan et al. variational k-means, for terrestrial "
                    "or drone scans where branches are visible; auto: dense for trees dense enough "
-                   "(8th neighbour within 0.25 m, lower stem scanned), hybrid for the others."),
+                   "(8th neighbour within 0.25 m, lower stem scanned), hybrid for the others; completed: "
+                   "hybrid, then small branches grown by self-similarity (the sketch paper §6, Table 1 "
+                   "angles) inside the crown's silhouettes seen from the south and from the east, for "
+                   "fuller crowns where the scan saw only the main branches."),
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
         Param("LOD", INTEGER, "Level of detail", default=0, minimum=0, maximum=2,

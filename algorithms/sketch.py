@@ -81,10 +81,8 @@ def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = 1
 
     Returns (skeleton with radii, wood mesh, leaf mesh or None, record dict).
     """
-    from ..core.forest import ModelOptions, is_conical
-    from ..core.geometry import (branch_count, pipe_model_radii, simplify_skeleton, total_branch_length,
-                                 tree_mesh, with_radii, wood_volume)
-    from ..core.leaves import LeafCards, NeedleClusters, grow_leaves
+    from ..core.forest import ModelOptions, dbh_radii, is_conical, leaf_mesh
+    from ..core.geometry import branch_count, simplify_skeleton, total_branch_length, tree_mesh, with_radii, wood_volume
     from ..core.measure import allometric_dbh_m
 
     options = ModelOptions(lod=lod, leaves=leaves)
@@ -92,23 +90,14 @@ def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = 1
     xy = sk.nodes[:, :2]
     crown_d = float(np.mean(np.ptp(xy, axis=0))) if len(sk) > 1 else 0.0
     dbh = float(allometric_dbh_m(height_m, crown_d))
-    stem_r = max(dbh, 0.02) / 2
-    radii = pipe_model_radii(sk, tip_radius_m=min(options.tip_radius_m, stem_r / 2), trunk_radius_m=stem_r)
-    sk = with_radii(sk, radii)
+    sk = with_radii(sk, dbh_radii(sk, dbh, options))
     wood = tree_mesh(sk, lod=options.lod)
     forks = sk.nodes[sk.n_children() >= 2, 2]
     crown_base = float(forks.min()) if len(forks) else 0.0
     kind = options.leaves
     if kind == "auto":
         kind = "needles" if is_conical(sk.nodes, crown_base) else "broadleaf"
-    scale = {0: 3.0, 1: 1.5}.get(options.lod, 1.0)  # as core.forest.model_trees: coarse LODs, fewer larger cards
-    leaf_mesh = None
-    if kind == "needles":
-        leaf_mesh = grow_leaves(sk, NeedleClusters(clusters_per_tip=max(2, int(8 / scale)),
-                                                   cluster_length_m=0.3 * scale), seed=seed)
-    elif kind == "broadleaf":
-        leaf_mesh = grow_leaves(sk, LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
-                                              leaf_length_m=0.1 * scale), seed=seed)
+    leaves_mesh = leaf_mesh(sk, kind, options, seed=seed)
     record = {
         "height": float(sk.nodes[:, 2].max()) if len(sk) else 0.0,
         "crown_diameter": crown_d,
@@ -120,7 +109,7 @@ def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = 1
         "wood_volume": float(wood_volume(sk)),
         "leaves": kind,
     }
-    return sk, wood, leaf_mesh, record
+    return sk, wood, leaves_mesh, record
 
 
 def run(args: dict, feedback: Feedback) -> Result:

@@ -95,6 +95,27 @@ def is_conical(xyz: np.ndarray, crown_base_z: float) -> bool:
     return bool(np.percentile(top, 90) < 0.45 * np.percentile(r, 90))
 
 
+def dbh_radii(skeleton, dbh_m: float, options: ModelOptions = ModelOptions()) -> np.ndarray:
+    """Pipe-model radii (Hu et al. 2017 §5.5, Eq. 6) scaled so the stem has the diameter ``dbh_m``."""
+    stem_r = max(dbh_m, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
+    return pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2), trunk_radius_m=stem_r)
+
+
+def leaf_mesh(skeleton, kind: str, options: ModelOptions = ModelOptions(), seed: int = 0):
+    """Needle clusters or leaf cards (``kind`` "needles" / "broadleaf"; else None) on a skeleton with radii.
+
+    Coarse levels of detail get fewer, larger cards: the crown's look at a fraction of the faces.
+    """
+    scale = {0: 3.0, 1: 1.5}.get(options.lod, 1.0)
+    if kind == "needles":
+        return grow_leaves(skeleton, NeedleClusters(clusters_per_tip=max(2, int(8 / scale)),
+                                                    cluster_length_m=0.3 * scale), seed=seed)
+    if kind == "broadleaf":
+        return grow_leaves(skeleton, LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
+                                               leaf_length_m=0.1 * scale), seed=seed)
+    return None
+
+
 def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
                 options: ModelOptions = ModelOptions(), progress: Progress = None,
                 cancelled: CancelCheck = None) -> List[ModelledTree]:
@@ -138,9 +159,7 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
                 else:
                     dbh, source = 2.0 * float(radii[skeleton.root]), "cylinder"
         else:
-            stem_r = max(dbh, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
-            radii = pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2),
-                                     trunk_radius_m=stem_r)
+            radii = dbh_radii(skeleton, dbh, options)
         skeleton = with_radii(skeleton, radii)
         if dense_qsm is not None:
             qsm, qsm_method = dense_qsm, "bspline_cylinders"
@@ -153,19 +172,10 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
         base = skeleton.nodes[skeleton.root].copy()
         shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
         wood = tree_mesh(shifted, lod=options.lod)
-        leaves = None
         kind = options.leaves
         if kind == "auto":
             kind = "needles" if is_conical(xyz, ground_z + metrics.crown_base_height[i]) else "broadleaf"
-        seed = zlib.crc32(f"leaves-{int(tree_id)}".encode())
-        # Coarse levels of detail: fewer, larger cards keep the crown's look at a fraction of the faces.
-        scale = {0: 3.0, 1: 1.5}.get(options.lod, 1.0)
-        if kind == "needles":
-            leaves = grow_leaves(shifted, NeedleClusters(clusters_per_tip=max(2, int(8 / scale)),
-                                                         cluster_length_m=0.3 * scale), seed=seed)
-        elif kind == "broadleaf":
-            leaves = grow_leaves(shifted, LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
-                                                    leaf_length_m=0.1 * scale), seed=seed)
+        leaves = leaf_mesh(shifted, kind, options, seed=zlib.crc32(f"leaves-{int(tree_id)}".encode()))
         noise = len(idx) < options.min_points
         quality = "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok")
         record = {

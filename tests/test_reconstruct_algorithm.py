@@ -219,3 +219,23 @@ def test_dense_tree_qsm_layers_in_qgis(sylva_provider, dense_and_sparse, tmp_pat
     trees = {f["tree_id"]: f for f in QgsVectorLayer(result["TREES"], "trees", "ogr").getFeatures()}
     assert trees[1]["dbh_source"] == "measured" and abs(trees[1]["dbh"] - truth["dbh"]) < 0.01
     assert (tmp_path / "qsm" / "cylinders.csv").exists() and (tmp_path / "qsm" / "trees.csv").exists()
+
+
+def test_completed_crowns_add_small_branches_inside_the_crown(segmented_corner, tmp_path):
+    """METHOD completed: the hybrid skeleton plus the sketch paper's self-similar small branches."""
+    path, labels = segmented_corner
+    out = {}
+    for method in ("hybrid", "completed"):
+        run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "reconstructtrees", f"--INPUT={path}",
+                              f"--METHOD={method}", f"--TREES={tmp_path / f'{method}.gpkg'}"],
+                             capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        out[method] = read_gpkg(tmp_path / f"{method}.gpkg", "trees").columns
+    plain, full = out["hybrid"], out["completed"]
+    assert np.array_equal(plain["tree_id"], full["tree_id"])
+    ok = plain["quality"] != "noise"
+    more = full["total_branch_length"][ok] > plain["total_branch_length"][ok] + 1e-9
+    assert more.mean() > 0.5                     # most trees gain small branches
+    assert np.all(full["total_branch_length"][ok] >= plain["total_branch_length"][ok] - 1e-9)
+    completed = full["method"] == "sketch_completion"   # the others were too small to complete
+    assert completed[ok].mean() > 0.5 and set(full["method"][~completed]) <= {"greedy_skeleton", "guided_growth"}
