@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.reconstruct.billboard import Billboard
-from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
+from .common import build_method, crs_override, input_cloud, load_segmented, method_params
 from .spec import FILE, FILE_OUT, FOLDER_OUT, RASTER, Algorithm, Feedback, Param, Result
 
 BILLBOARD_PARAMS = method_params(Billboard, {
@@ -70,7 +70,6 @@ def point_colours(cloud, image_path, feedback: Feedback, camera_path=None):
 
 
 def run(args: dict, feedback: Feedback) -> Result:
-    from ..core.errors import InputError
     from ..core.export.gltf import write_glb
     from ..core.export.model import ExportFrame, TreeModel
     from ..core.export.tiles3d import write_tileset
@@ -78,20 +77,9 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.measure import estimate_dbh, tree_metrics
     from ..core.progress import check
     from ..core.reconstruct.billboard import billboard_tree, point_rgb
-    from ..core.terrain import normalize
 
-    source = load_cloud(args, feedback)
-    if "treeID" not in source.attrs:
-        raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension; "
-                         "run 'Segment trees' (sylva:segmenttrees) on it first")
-    cloud, _ = drop_noise(source, feedback)
-    if cloud.attr("height") is None:
-        feedback.progress(0.02, "height above ground")
-        cloud = normalize(cloud)
-    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    cloud, labels = load_segmented(args, feedback)
     metrics = tree_metrics(cloud, labels)
-    if len(metrics) == 0:
-        raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
     method = build_method(Billboard, args)
     rgb, kind = point_colours(cloud, args.get("IMAGE"), feedback, args.get("CAMERA"))
     colours = point_rgb(rgb) if rgb is not None else None

@@ -94,3 +94,23 @@ def drop_noise(cloud, feedback: Feedback):
         feedback.info(f"{int(noise.sum()):,} noise points left out (classes 7/18, withheld, isolated)")
     keep = ~noise
     return cloud.subset(keep), keep
+
+
+def load_segmented(args: dict, feedback: Feedback):
+    """(cloud without noise, with ``height`` above ground; its int64 treeID labels) of a segmented INPUT."""
+    import numpy as np
+
+    from ..core.terrain import normalize
+
+    source = load_cloud(args, feedback)
+    if "treeID" not in source.attrs:
+        raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension; "
+                         "run 'Segment trees' (sylva:segmenttrees) on it first")
+    cloud, _ = drop_noise(source, feedback)
+    if cloud.attr("height") is None:
+        feedback.progress(0.02, "height above ground")
+        cloud = normalize(cloud)
+    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    if not (labels > 0).any():
+        raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
+    return cloud, labels

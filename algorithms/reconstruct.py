@@ -8,7 +8,7 @@ import numpy as np
 from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
-from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
+from .common import build_method, crs_override, input_cloud, load_segmented, method_params
 from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param,
                    Result)
 
@@ -54,24 +54,13 @@ def _methods(args):
 
 
 def run(args: dict, feedback: Feedback) -> Result:
-    from ..core.errors import InputError
     from ..core.export.gltf import write_glb
     from ..core.export.model import ExportFrame, TreeModel
     from ..core.forest import ModelOptions, model_trees, qsm_tables, skeleton_table
     from ..core.measure import tree_metrics
-    from ..core.terrain import normalize
 
-    source = load_cloud(args, feedback)
-    if "treeID" not in source.attrs:
-        raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension; "
-                         "run 'Segment trees' (sylva:segmenttrees) on it first")
-    cloud, _ = drop_noise(source, feedback)
-    feedback.progress(0.02, "height above ground")
-    cloud = normalize(cloud)
-    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    cloud, labels = load_segmented(args, feedback)
     metrics = tree_metrics(cloud, labels)
-    if len(metrics) == 0:
-        raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
     feedback.info(f"{len(metrics)} trees to model")
     method, dense = _methods(args)
     options = ModelOptions(method=method, dense_method=dense, lod=args["LOD"], leaves=args["LEAVES"])

@@ -26,6 +26,24 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def segmented_corner_of(sample: Path, folder: Path, size_m: float):
+    """A size_m x size_m corner of the sample, segmented (NormalizedCut), written as LAZ with a treeID.
+
+    Returns (path, labels)."""
+    from sylva.core.io import read_cloud
+    from sylva.core.io.las import write_las
+    from sylva.core.segment import segment_trees
+    from sylva.core.terrain import normalize
+
+    cloud = read_cloud(sample)
+    x0, y0 = cloud.xyz[:, 0].min(), cloud.xyz[:, 1].min()
+    corner = cloud.subset((cloud.xyz[:, 0] < x0 + size_m) & (cloud.xyz[:, 1] < y0 + size_m))
+    labels = segment_trees(normalize(corner))
+    path = folder / "corner.laz"
+    write_las(path, corner, extra={"treeID": labels})
+    return path, labels
+
+
 def qgis_process(*args, timeout: int = 300):
     """Run headless qgis_process with this checkout's profile (scripts/setup.sh enables the plugin).
 

@@ -356,18 +356,9 @@ def test_billboard_glb_passes_the_khronos_validator(tmp_path, billboard_models):
 @pytest.fixture(scope="module")
 def segmented_corner(sample_laz, tmp_path_factory):
     """A 30 m x 30 m corner of the bundled sample, segmented, with a treeID dimension."""
-    from sylva.core.io import read_cloud
-    from sylva.core.io.las import write_las
-    from sylva.core.segment import segment_trees
-    from sylva.core.terrain import normalize
+    from conftest import segmented_corner_of
 
-    cloud = read_cloud(sample_laz)
-    x0, y0 = cloud.xyz[:, 0].min(), cloud.xyz[:, 1].min()
-    corner = cloud.subset((cloud.xyz[:, 0] < x0 + 30) & (cloud.xyz[:, 1] < y0 + 30))
-    labels = segment_trees(normalize(corner))
-    path = tmp_path_factory.mktemp("bbseg") / "corner.laz"
-    write_las(path, corner, extra={"treeID": labels})
-    return path, labels
+    return segmented_corner_of(sample_laz, tmp_path_factory.mktemp("bbseg"), 30.0)
 
 
 def test_cli_billboards_on_the_sample(segmented_corner, tmp_path):

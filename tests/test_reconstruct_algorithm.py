@@ -12,20 +12,14 @@ from sylva.core.export.model import ExportFrame
 from sylva.core.io import read_cloud
 from sylva.core.io.gpkg import read_gpkg
 from sylva.core.io.las import write_las
-from sylva.core.segment import segment_trees
-from sylva.core.terrain import normalize
 
 
 @pytest.fixture(scope="module")
 def segmented_corner(sample_laz, tmp_path_factory):
     """A 40 m x 40 m corner of the sample, segmented, written with a treeID dimension."""
-    cloud = read_cloud(sample_laz)
-    x0, y0 = cloud.xyz[:, 0].min(), cloud.xyz[:, 1].min()
-    corner = cloud.subset((cloud.xyz[:, 0] < x0 + 40) & (cloud.xyz[:, 1] < y0 + 40))
-    labels = segment_trees(normalize(corner))
-    path = tmp_path_factory.mktemp("seg") / "corner.laz"
-    write_las(path, corner, extra={"treeID": labels})
-    return path, labels
+    from conftest import segmented_corner_of
+
+    return segmented_corner_of(sample_laz, tmp_path_factory.mktemp("seg"), 40.0)
 
 
 def test_every_tree_gets_a_model(segmented_corner, tmp_path):
