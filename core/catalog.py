@@ -532,6 +532,9 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
             skipped.append(job.name)
         else:
             todo.append(job)
+    # Largest tiles first (longest-processing-time order): no big tile is left to run alone at the end.
+    points = {t.name: t.points for t in tiles}
+    todo.sort(key=lambda j: -points[j.name])
     total = max(len(jobs), 1)
     state = {"done": len(skipped)}
 
