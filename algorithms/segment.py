@@ -95,7 +95,17 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                         "the tile's intensity spread (Eq. 2)."),
     "sigma_colour": ("Colour scale", "Normalised cut: weight of RGB differences (0–1 colour units, Eq. 2); "
                      "ignored without RGB."),
-}, advanced=("sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour"))
+    "top_window_points": ("Tree-top window: canopy points", "Normalised cut: on sparse clouds the tree-top "
+                          "window is widened until it holds at least this many canopy first returns (2.7 m at "
+                          "4.3 points/m²); 0, or a TOP_WINDOW_M you set, keeps the window fixed."),
+    "apex_window_m": ("Steep-apex window (m)", "Normalised cut: maxima of this narrow window also count as tree "
+                      "tops when the canopy falls away steeply from them (conifer tips overtopped on one side "
+                      "by a taller neighbour; Sylva's rule, not the paper's); 0 turns this off."),
+    "apex_slope": ("Steep-apex drop (m/m)", "Normalised cut: the drop around such a tip, metres per metre."),
+    "apex_sectors": ("Steep-apex directions", "Normalised cut: in how many of 8 compass directions the canopy "
+                     "must drop that steeply."),
+}, advanced=("sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour", "top_window_points", "apex_window_m",
+             "apex_slope", "apex_sectors"))
 
 CHM_PARAMS = method_params(ChmRegionGrowing, {
     "resolution_m": ("CHM cell size (m)", "Region growing: cell size of the canopy height model."),
@@ -125,6 +135,8 @@ def run_segment(args: dict, feedback: Feedback) -> Result:
     fixed = {"min_height_m": args["MIN_HEIGHT_M"]}
     if args.get("TOP_WINDOW_M"):
         fixed["top_window_m"] = args["TOP_WINDOW_M"]
+        if cls is NormalizedCut:
+            fixed["top_window_points"] = 0.0   # the user's window, exactly
     method = build_method(cls, args, **fixed)
     labels = segment_trees(cloud, method, progress=scaled(feedback.progress, 0.1, 0.8),
                            cancelled=feedback.cancelled)

@@ -2,6 +2,8 @@
 
     python benchmarks/segmentation.py            # everything (1, 5 and 20 M points)
     python benchmarks/segmentation.py --quick    # throughput at 1 M points only
+    python benchmarks/segmentation.py --stands dense --densities 20 --sizes 0
+                                                 # one setting of the table, no throughput
 
 Prints, for every method side by side:
 
@@ -14,6 +16,8 @@ Prints, for every method side by side:
 2. on ../shared/data/als/MixedConifer.laz (heights already normalised): the
    number of trees and, for trees matched one-to-one to lidR's own treeID
    labels, the median 2-D convex-hull crown IoU (skipped when absent);
+   and the same detection scores as in 1. on the plugin's shipped sample
+   (resources/sample/sample.laz against sample_trees.csv);
 3. throughput (points/s through the whole segment_trees verb: tops,
    voxels, graph, cuts, labels) and the verb's peak memory (tracemalloc
    peak of a second run; numpy reports its buffers to tracemalloc) and the
@@ -55,7 +59,7 @@ def _methods():
     return [("NormalizedCut", NormalizedCut()), ("ChmRegionGrowing", ChmRegionGrowing())]
 
 
-def accuracy_table():
+def accuracy_table(stands=("open", "medium", "dense"), densities=(5, 20, 50)):
     from sylva.core import synth
     from sylva.core.segment import segment_trees
     from sylva.core.terrain import normalize
@@ -67,8 +71,8 @@ def accuracy_table():
     for n in names:
         head += f"| {n[:16]:16s} P     R     F1    ptacc  kpt/s "
     print(head)
-    for stand_name in ("open", "medium", "dense"):
-        for density in (5, 20, 50):
+    for stand_name in stands:
+        for density in densities:
             stand_spec, scan_spec = synth.preset(stand_name, pulse_density=density)
             stand = synth.make_stand(stand_spec)
             scan = synth.simulate_scan(stand, scan_spec)
@@ -113,6 +117,31 @@ def mixed_conifer():
         print(f"   {name:16s} trees {len(np.unique(labels[labels > 0])):4d}   matched to lidR "
               f"{len(ious):4d} of {n_ref}   median crown IoU {np.median(ious):.3f}   "
               f"({dt:.1f} s)")
+    print()
+
+
+def shipped_sample():
+    """Detection scores on resources/sample/sample.laz against sample_trees.csv."""
+    import laspy
+
+    from sylva.core.io.las import read_las
+    from sylva.core.segment import segment_trees
+    from sylva.core.synth import read_truth
+    from sylva.core.terrain import normalize
+
+    laz = REPO / "resources" / "sample" / "sample.laz"
+    print("   shipped sample (resources/sample/sample.laz vs sample_trees.csv):")
+    if not laz.exists():
+        print(f"   skipped: {laz} not found\n")
+        return
+    cloud = normalize(read_las(str(laz)))
+    truth = np.asarray(laspy.read(str(laz)).true_tree)
+    trees = read_truth(laz.with_name("sample_trees.csv"))
+    for name, method in _methods():
+        labels = segment_trees(cloud, method)
+        r = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], labels, truth, trees)
+        print(f"   {name:16s} trees {r['n_detected']:4d} of {r['n_true']}   P {r['precision']:.3f} "
+              f"R {r['recall']:.3f} F1 {r['f1']:.3f} ptacc {r['point_accuracy']:.3f}")
     print()
 
 
@@ -186,6 +215,14 @@ def throughput(sizes):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="throughput at 1 M points only")
+    parser.add_argument("--stands", default="open,medium,dense",
+                        help="comma-separated stands of the accuracy table (open, medium, dense)")
+    parser.add_argument("--densities", default="5,20,50",
+                        help="comma-separated pulse densities of the accuracy table")
+    parser.add_argument("--sizes", default=None,
+                        help="comma-separated throughput sizes in points (0: no throughput)")
+    parser.add_argument("--no-real", action="store_true",
+                        help="skip MixedConifer and the shipped sample")
     parser.add_argument("--child-make", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--child-run", nargs=1, help=argparse.SUPPRESS)
     parser.add_argument("--skip-accuracy", action="store_true", help=argparse.SUPPRESS)
@@ -197,9 +234,19 @@ def main(argv=None):
         print(json.dumps(_run_verb(args.child_run[0])))
         return
     if not args.skip_accuracy:
-        accuracy_table()
-        mixed_conifer()
-    throughput([1_000_000] if args.quick else [1_000_000, 5_000_000, 20_000_000])
+        stands = tuple(s for s in args.stands.split(",") if s)
+        densities = tuple(float(d) if "." in d else int(d) for d in args.densities.split(",") if d)
+        if stands and densities:
+            accuracy_table(stands, densities)
+        if not args.no_real:
+            mixed_conifer()
+            shipped_sample()
+    if args.sizes is not None:
+        sizes = [int(float(n)) for n in args.sizes.split(",") if float(n) > 0]
+    else:
+        sizes = [1_000_000] if args.quick else [1_000_000, 5_000_000, 20_000_000]
+    if sizes:
+        throughput(sizes)
 
 
 if __name__ == "__main__":

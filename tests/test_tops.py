@@ -7,7 +7,7 @@ from sylva.core.cloud import INTERNATIONAL_FOOT, PointCloud, Units
 from sylva.core.errors import Cancelled, EmptyInputError, InputError
 from sylva.core.raster import Raster
 from sylva.core.terrain import canopy_height_model
-from sylva.core.tops import FixedWindow, TreeTops, VariableWindow, find_tree_tops
+from sylva.core.tops import FixedWindow, SteepApex, TreeTops, VariableWindow, find_tree_tops
 
 UTM = pyproj.CRS.from_epsg(26912)
 
@@ -179,3 +179,42 @@ def test_f1_on_open_synthetic_stand():
     tops = find_tree_tops(cloud, VariableWindow())
     ground = stand.ground_z(tops.xyz[:, 0], tops.xyz[:, 1])
     np.testing.assert_allclose(tops.xyz[:, 2] - ground, tops.height, atol=0.15)
+
+
+def tucked(step=0.2, small_height=13.5):
+    """A tall cone (apex (10, 10), 22 m, radius 4 m) whose flank rises above the apex of a
+    narrow cone (13.2, 10), 1.2 m radius, 0.8 m from that apex: a grid-sampled canopy surface."""
+    g = np.arange(0.0, 24.0, step)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    big = 22.0 - (22.0 - 7.7) / 4.0 * np.hypot(x - 10.0, y - 10.0)
+    small = small_height - (small_height - 4.7) / 1.2 * np.hypot(x - 13.2, y - 10.0)
+    h = np.maximum(np.maximum(big, small), 0.0)
+    return PointCloud(np.column_stack([x, y, h]), {"height": h}, source="tucked.laz")
+
+
+def test_steep_apex_adds_the_tip_a_wide_window_misses():
+    cloud = tucked()
+    wide = find_tree_tops(cloud, FixedWindow(2.0))
+    assert len(wide) == 1 and wide.height[0] == pytest.approx(22.0, abs=0.1)   # the tip is overtopped
+    # the tall cone's flank covers the 3 sectors facing it and part of a 4th
+    rule = SteepApex(sectors=4)
+    tops = find_tree_tops(cloud, FixedWindow(2.0), apex=rule)
+    assert len(tops) == 2
+    np.testing.assert_allclose(tops.xyz[1, :2], [13.2, 10.0], atol=1e-9)
+    assert tops.height[1] == pytest.approx(13.5) and list(tops.tree_id) == [1, 2]
+    # required drop steeper than the narrow cone's 7.3 m/m: not a steep apex
+    assert len(find_tree_tops(cloud, FixedWindow(2.0), apex=SteepApex(slope=8.0, sectors=4))) == 1
+    # a higher top within separation_m: a second steep point of that tree, not a tree
+    assert len(find_tree_tops(cloud, FixedWindow(2.0), apex=SteepApex(sectors=4, separation_m=4.0))) == 1
+
+
+def test_steep_apex_adds_nothing_on_rounded_crowns_and_needs_points():
+    cloud = crowns(TOPS)
+    tops = find_tree_tops(cloud, FixedWindow(3.0), apex=SteepApex())
+    assert len(tops) == len(TOPS)   # paraboloid crowns: no surplus tips
+    with pytest.raises(InputError, match="point cloud"):
+        find_tree_tops(canopy_height_model(cloud, resolution_m=0.5), apex=SteepApex())
+    with pytest.raises(InputError, match="apex rule"):
+        find_tree_tops(cloud, apex="steep")
+    with pytest.raises(InputError, match="sectors"):
+        SteepApex(sectors=9)

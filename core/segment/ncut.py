@@ -33,7 +33,15 @@ Steps
    small on purpose: surplus tops are merged in step 4) searched among the
    highest point of each ``TOP_CELL_M`` column only (every top is such a
    point; a canopy-surface thinning that makes the search several times
-   faster).  Every voxel gets the tree top nearest to it along the graph
+   faster).  Two Sylva additions (not in Hu et al.), measured with
+   ``benchmarks/segmentation.py``: at low point density the window is
+   widened until it holds ``top_window_points`` canopy points (first returns
+   per m² of canopy, so a local maximum is not a sampling accident: 2.7 m on
+   lidR's MixedConifer at 4.3 points/m²), and the steep-apex rule
+   (:class:`sylva.core.tops.SteepApex`: ``apex_window_m``, ``apex_slope``,
+   ``apex_sectors``) adds the tips of narrow conifers that a taller
+   neighbour overtops within the window, the main loss of recall in dense
+   stands.  Every voxel gets the tree top nearest to it along the graph
    (multi-source Dijkstra); a step costs the Eq. 2 dissimilarity -log w_ij
    plus ``climb`` x the height it gains, so a region runs down its own crown
    and stops at the crease where the neighbouring crown rises again.  Voxels
@@ -49,8 +57,8 @@ Steps
    the smallest NCut(A, B) that keeps each top on its own side.  The new
    boundary replaces the old one only if its NCut is lower.  The best cut of
    a pair (the lower of the Fiedler split and the start boundary) says
-   whether the two regions are one tree with two local maxima: they are
-   merged (the higher top keeps its id) when it costs more than
+   whether the two regions are one tree with two local maxima: the lower top
+   is merged into the higher one (which keeps its id) when it costs more than
    ``always_merge_ncut``, or more than ``merge_ncut`` while the crowns dip
    between the two tops by less than ``merge_dip`` x the lower top's height
    (the dip is measured to the saddle, the highest voxel edge across their
@@ -60,7 +68,10 @@ Steps
    a dense, interlocking canopy), the saddle depth does (a Sylva addition,
    not in Hu et al.): measured on the
    synthetic stands, the dip of a surplus top is 0.6–3.4 % of the lower top
-   (10th–90th percentile), that of two trees 3–33 %.  Each sub-problem holds
+   (10th–90th percentile), that of two trees 3–33 %.  A lower top that
+   qualifies for merging with several neighbours joins only the one across
+   the highest saddle (smallest dip), so a surplus top lying between two
+   trees does not chain them into one.  Each sub-problem holds
    two crowns, so time and memory grow linearly with the tile.
 5. **Clean-up and points.** Nothing of a tree lies above its top; voxels cut
    off from their top go to the neighbour they are most strongly joined to;
@@ -103,6 +114,10 @@ ATTACH_ROUNDS = 5
 #: A point higher than its tree's top by more than this is not that tree's.
 TOP_TOLERANCE_M = 0.02
 
+#: At low density the steep-apex window is widened to hold this many canopy
+#: first returns (0.8 m at about 19 points/m², 1.6 m at 5 points/m²).
+APEX_WINDOW_POINTS = 10.0
+
 
 @dataclass(frozen=True)
 class NormalizedCut:
@@ -118,6 +133,13 @@ class NormalizedCut:
     ``top_window_m``: fixed window of the local-maximum tree-top search when
     no tops are given (small on purpose: the cuts merge surplus tops); None
     means the default.
+    ``top_window_points``: at low point density the window is widened so that
+    it holds at least this many canopy first returns (0 keeps ``top_window_m``).
+    ``apex_window_m``, ``apex_slope``, ``apex_sectors``: the steep-apex rule
+    (:class:`sylva.core.tops.SteepApex`): a maximum of this narrow window is a
+    top too when the canopy drops at least ``apex_slope`` m per m from it in
+    ``apex_sectors`` of 8 directions (conifer tips overtopped on one side by
+    a neighbour); ``apex_window_m`` 0 turns the rule off.
     ``merge_ncut``, ``merge_dip``: two regions whose best two-way cut costs more
     than ``merge_ncut`` (Eq. 1) *and* whose crowns dip between their tops by less
     than ``merge_dip`` x the lower top's height are one tree.
@@ -136,6 +158,10 @@ class NormalizedCut:
     sigma_colour: float = 0.25
     min_height_m: float = 2.0
     top_window_m: float = 2.0
+    top_window_points: float = 25.0
+    apex_window_m: float = 0.8
+    apex_slope: float = 3.0
+    apex_sectors: int = 5
     merge_ncut: float = 0.05
     merge_dip: float = 0.04
     always_merge_ncut: float = 0.15
@@ -153,6 +179,39 @@ class NormalizedCut:
             raise ValueError("NormalizedCut: min_height_m must be >= 0")
         if self.merge_dip < 0:
             raise ValueError("NormalizedCut: merge_dip must be >= 0")
+        if self.top_window_points < 0 or self.apex_window_m < 0:
+            raise ValueError("NormalizedCut: top_window_points and apex_window_m must be >= 0")
+        if self.apex_window_m > 0 and not (self.apex_slope > 0 and 1 <= self.apex_sectors <= 8):
+            raise ValueError("NormalizedCut: apex_slope must be > 0 and apex_sectors in 1..8")
+
+    def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
+                crown: np.ndarray):
+        """(top window, apex window) diameters in metres for this cloud (apex 0: no rule).
+
+        Each is widened at low density to hold ``top_window_points`` /
+        ``APEX_WINDOW_POINTS`` canopy first returns (:func:`canopy_density`)."""
+        density = canopy_density(cloud, local, crown)
+        wide = float(self.top_window_m)
+        if self.top_window_points > 0:
+            wide = max(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
+        apex = 0.0
+        if self.apex_window_m > 0:
+            apex = max(float(self.apex_window_m), 2.0 * np.sqrt(APEX_WINDOW_POINTS / (np.pi * density)))
+            if apex >= wide:
+                apex = 0.0
+        return wide, apex
+
+    def _find_tops(self, cloud, local, height, crown, progress, cancelled):
+        """Tree tops among the highest point of every TOP_CELL_M column (see step 3)."""
+        from ..tops import FixedWindow, SteepApex, find_tree_tops
+
+        wide, apex = self.windows(cloud, local, height, crown)
+        sel = np.flatnonzero(crown)
+        search = sel[_column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
+        rule = SteepApex(apex, self.apex_slope, int(self.apex_sectors)) if apex > 0 else None
+        return find_tree_tops(cloud.subset(search), window=FixedWindow(wide),
+                              min_height_m=self.min_height_m, progress=progress,
+                              cancelled=cancelled, apex=rule)
 
     def segment(self, cloud: PointCloud, tops=None, progress: Progress = None,
                 cancelled: CancelCheck = None) -> np.ndarray:
@@ -170,12 +229,11 @@ class NormalizedCut:
         graph = voxel_graph(cloud, local, height, crown, self)
         check(cancelled)
         report(progress, 0.1, "finding tree tops")
-        search = None
         if tops is None and graph.n:
-            sel = np.flatnonzero(crown)
-            search = sel[_column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
+            tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
+                                   cancelled)
         local_tops = resolve_tops(cloud, tops, self.min_height_m, self.top_window_m,
-                                  scaled(progress, 0.1, 0.2), cancelled, search=search)
+                                  scaled(progress, 0.1, 0.2), cancelled)
         check(cancelled)
         if len(local_tops) == 0 or graph.n == 0:
             return labels
@@ -312,6 +370,30 @@ def _column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     order = np.argsort(-z, kind="stable")
     _, first = np.unique(key[order], return_index=True)
     return np.sort(order[first])
+
+
+def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> float:
+    """Canopy first returns per m² of canopy: the crown points' first returns (all
+    crown points when the cloud has no ``return_number``) over the number of
+    occupied 1 m columns."""
+    rn = cloud.attr("return_number")
+    sel = crown if rn is None else crown & (np.asarray(rn) <= 1)
+    if not sel.any():
+        sel = crown
+    xy = local[sel, :2]
+    if len(xy) == 0:
+        return 1.0
+    ij = np.floor(xy - xy.min(axis=0)).astype(np.int64)
+    ny = int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    size = int(ij[:, 0].max() + 1) * ny
+    if size <= 8 * len(key) + 1_000_000:      # an occupancy grid is cheaper than a sort
+        occupied = np.zeros(size, dtype=bool)
+        occupied[key] = True
+        cells = int(occupied.sum())
+    else:
+        cells = len(np.unique(key))
+    return len(xy) / cells
 
 
 def _top_voxels(graph: VoxelGraph, tops, params: NormalizedCut):
@@ -515,7 +597,9 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
     4. Pairs whose best cut (Fiedler split or start boundary) costs more than
        ``always_merge_ncut``, or more than ``merge_ncut`` with a dip to the
        saddle below ``merge_dip`` x the lower top, are one tree with two local
-       maxima: they are merged (the higher top keeps its id).  The other
+       maxima: the lower top is merged into the higher one (which keeps its
+       id); a lower top with several such neighbours joins only the one across
+       the highest saddle.  The other
        proposals move voxels across the boundary (the lowest-NCut proposal
        wins when a voxel gets several).
     """
@@ -528,6 +612,8 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
     parent = np.arange(k)
     best_ncut = np.full(graph.n, np.inf)
     proposal = region.copy()
+    partner = np.full(k, -1, dtype=np.int64)    # the top each lower top merges into
+    partner_dip = np.full(k, np.inf)
     if len(pairs):
         ncut_start, saddle = _pair_ncut(graph, region, pairs, k)
         order = np.argsort(region, kind="stable")
@@ -559,10 +645,9 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             dip = (low - saddle[i]) / low
             if best > params.always_merge_ncut or (best > params.merge_ncut
                                                    and dip < params.merge_dip):
-                rp, rq = _find(parent, p), _find(parent, q)
-                if rp != rq:
-                    hi, lo = (rp, rq) if (top_height[rp], -rp) >= (top_height[rq], -rq) else (rq, rp)
-                    parent[lo] = hi
+                hi, lo = (p, q) if (top_height[p], -p) >= (top_height[q], -q) else (q, p)
+                if (dip, hi) < (partner_dip[lo], partner[lo]):   # the highest saddle wins
+                    partner[lo], partner_dip[lo] = hi, dip
                 continue
             if not ncut < ncut_now:
                 continue   # the start boundary is already the better cut (Eq. 1)
@@ -570,6 +655,11 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             moved = (new != region[nodes]) & (ncut < best_ncut[nodes])
             proposal[nodes[moved]] = new[moved]
             best_ncut[nodes[moved]] = ncut
+    for lo in np.flatnonzero(partner >= 0):
+        rp, rq = _find(parent, int(lo)), _find(parent, int(partner[lo]))
+        if rp != rq:
+            hi, low = (rp, rq) if (top_height[rp], -rp) >= (top_height[rq], -rq) else (rq, rp)
+            parent[low] = hi
     roots = np.array([_find(parent, i) for i in range(k)], dtype=np.int64)
     vlabel = np.where(proposal >= 0, top_id[roots[np.maximum(proposal, 0)]], 0)
     alive = roots == np.arange(k)
@@ -597,7 +687,8 @@ def _clean(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
     z = graph.xyz[:, 2]
     size = int(max(top_id.max(initial=0), vlabel.max(initial=0))) + 1
     height_of = np.full(size, -np.inf)
-    height_of[top_id] = top_height
+    # a given top may lie a little below its voxel's mean (another source or DTM)
+    height_of[top_id] = np.maximum(top_height, z[top_voxel])
     vlabel = np.where(z <= height_of[vlabel] + tolerance_m, vlabel, 0)
     same = (vlabel[a] == vlabel[b]) & (vlabel[a] > 0)
     G = sp.coo_matrix((np.ones(same.sum()), (a[same], b[same])), shape=(m, m))
