@@ -189,7 +189,7 @@ def _spacing(xyz: np.ndarray) -> float:
     if len(xyz) < 2:
         return 0.0
     query = xyz if len(xyz) <= 2000 else xyz[np.linspace(0, len(xyz) - 1, 2000).astype(np.int64)]
-    d, _ = cKDTree(xyz).query(query, k=2)
+    d, _ = cKDTree(xyz, balanced_tree=False, compact_nodes=False).query(query, k=2)
     d = d[:, 1]
     d = d[d > 0]
     return float(np.median(d)) if len(d) else 0.0
