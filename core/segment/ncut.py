@@ -342,7 +342,7 @@ def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
     # the cylinder of Eq. 2 (horizontal distance < radius_m), cut at +-height_m
     # vertically: an ellipsoid, i.e. a ball in coordinates with z scaled
     squeeze = params.radius_m / params.height_m
-    tree = cKDTree(vxyz * np.array([1.0, 1.0, squeeze]))
+    tree = cKDTree(vxyz * np.array([1.0, 1.0, squeeze]), balanced_tree=False, compact_nodes=False)
     pairs = tree.query_pairs(params.radius_m, output_type="ndarray")
     if len(pairs) == 0:
         pairs = np.zeros((0, 2), dtype=np.int64)
