@@ -111,9 +111,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from ..errors import EmptyInputError, InputError
+from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
 from .trunk import add_trunk_points
 
 __all__ = ["GuidedGrowth", "SPECIES_PRESETS", "pca_weights", "influence_distance",
@@ -495,15 +495,8 @@ class GuidedGrowth:
             raise InputError(f"GuidedGrowth expects a TreePoints, got {type(tree).__name__}")
         xyz = tree.xyz
         n = len(xyz)
-        if n == 0:
-            raise EmptyInputError(f"tree {tree.tree_id} has no points to reconstruct")
+        ground_z, flags, bad = screen(tree, int(self.min_points))
         stats = {"n_points": int(n)}
-        flags = []
-        ground_z = tree.ground_z
-        if xyz[:, 2].min() < ground_z:
-            flags.append("points_below_ground")
-            ground_z = float(xyz[:, 2].min())
-        bad = degenerate_flags(xyz, int(self.min_points))
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             visited = self._coverage(skel.nodes, xyz)

@@ -61,9 +61,9 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from ..errors import EmptyInputError, InputError, SylvaError
+from ..errors import InputError, SylvaError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
 
 __all__ = ["VariationalKMeans", "Segmentation", "BranchStructure", "DenseModel", "knn_graph",
            "segment", "lloyd", "bounding_cylinders", "energy", "branch_structure", "model_branches",
@@ -1339,15 +1339,8 @@ class VariationalKMeans:
         from ..qsm import cylinders_from_curves, refit_radii, taper_radii
         t_all = time.perf_counter()
         xyz = tree.xyz
-        if len(xyz) == 0:
-            raise EmptyInputError(f"tree {tree.tree_id} has no points to reconstruct")
+        ground_z, flags, bad = screen(tree, self.min_points)
         stats = {"n_points": int(len(xyz))}
-        flags: List[str] = []
-        ground_z = tree.ground_z
-        if xyz[:, 2].min() < ground_z:
-            flags.append("points_below_ground")
-            ground_z = float(xyz[:, 2].min())
-        bad = degenerate_flags(xyz, self.min_points)
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             stats["t_total_s"] = time.perf_counter() - t_all

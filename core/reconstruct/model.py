@@ -20,7 +20,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import EmptyInputError, InputError
 
 
 @dataclass
@@ -277,3 +277,21 @@ def degenerate_flags(xyz: np.ndarray, min_points: int) -> List[str]:
     if spread[2] < 0.01:
         return ["coplanar_points"]
     return []
+
+
+def screen(tree: TreePoints, min_points: int):
+    """The checks every method starts with: (ground_z, flags, degenerate flags).
+
+    Raises :class:`EmptyInputError` for a tree without points; points below
+    ``tree.ground_z`` lower the ground to them (flag ``points_below_ground``);
+    the third item is :func:`degenerate_flags` (empty when the tree can be modelled).
+    """
+    xyz = tree.xyz
+    if len(xyz) == 0:
+        raise EmptyInputError(f"tree {tree.tree_id} has no points to reconstruct")
+    flags: List[str] = []
+    ground_z = tree.ground_z
+    if xyz[:, 2].min() < ground_z:
+        flags.append("points_below_ground")
+        ground_z = float(xyz[:, 2].min())
+    return ground_z, flags, degenerate_flags(xyz, min_points)

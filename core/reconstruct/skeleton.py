@@ -37,11 +37,11 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ..errors import EmptyInputError, InputError
+from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
 from .direction import direction_field
 from .graph import build_graph
-from .model import Reconstruction, Skeleton, TreePoints, degenerate_flags, minimal_skeleton
+from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
 from .thinning import thin_voxels
 from .trunk import add_trunk_points
 
@@ -299,15 +299,8 @@ class GreedySkeleton:
         """Run §4.2 → §5.4 on one tree; see :func:`sylva.core.reconstruct.reconstruct_tree`."""
         t_all = time.perf_counter()
         xyz = tree.xyz
+        ground_z, flags, bad = screen(tree, self.min_points)
         stats = {"n_points": int(len(xyz))}
-        flags = []
-        if len(xyz) == 0:
-            raise EmptyInputError(f"tree {tree.tree_id} has no points to reconstruct")
-        ground_z = tree.ground_z
-        if xyz[:, 2].min() < ground_z:
-            flags.append("points_below_ground")
-            ground_z = float(xyz[:, 2].min())
-        bad = degenerate_flags(xyz, self.min_points)
         if bad:
             skel = minimal_skeleton(xyz, ground_z)
             stats["t_total_s"] = time.perf_counter() - t_all
