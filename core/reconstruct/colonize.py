@@ -113,7 +113,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
+from .model import Reconstruction, Skeleton, TreePoints, screen
 from .trunk import add_trunk_points
 
 __all__ = ["GuidedGrowth", "SPECIES_PRESETS", "pca_weights", "influence_distance",
@@ -495,14 +495,12 @@ class GuidedGrowth:
             raise InputError(f"GuidedGrowth expects a TreePoints, got {type(tree).__name__}")
         xyz = tree.xyz
         n = len(xyz)
-        ground_z, flags, bad = screen(tree, int(self.min_points))
+        ground_z, flags, degenerate = screen(tree, int(self.min_points), self.name, progress)
+        if degenerate is not None:
+            degenerate.visited_fraction = self._coverage(degenerate.skeleton.nodes, xyz)
+            degenerate.connected = True
+            return degenerate
         stats = {"n_points": int(n)}
-        if bad:
-            skel = minimal_skeleton(xyz, ground_z)
-            visited = self._coverage(skel.nodes, xyz)
-            stats["t_total_s"] = time.perf_counter() - t_all
-            report(progress, 1.0, f"tree {tree.tree_id}: {bad[0].replace('_', ' ')}")
-            return Reconstruction(skel, self.name, visited, True, stats, flags + bad, tree.tree_id)
 
         # Markers and their weights (Eq. 8).
         check(cancelled)

@@ -63,7 +63,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError, SylvaError
 from ..progress import CancelCheck, Progress, check, report
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
+from .model import Reconstruction, Skeleton, TreePoints, screen
 
 __all__ = ["VariationalKMeans", "Segmentation", "BranchStructure", "DenseModel", "knn_graph",
            "segment", "lloyd", "bounding_cylinders", "energy", "branch_structure", "model_branches",
@@ -1339,13 +1339,10 @@ class VariationalKMeans:
         from ..qsm import cylinders_from_curves, refit_radii, taper_radii
         t_all = time.perf_counter()
         xyz = tree.xyz
-        ground_z, flags, bad = screen(tree, self.min_points)
+        ground_z, flags, rec = screen(tree, self.min_points, self.name, progress)
         stats = {"n_points": int(len(xyz))}
-        if bad:
-            skel = minimal_skeleton(xyz, ground_z)
-            stats["t_total_s"] = time.perf_counter() - t_all
-            report(progress, 1.0, f"tree {tree.tree_id}: {bad[0].replace('_', ' ')}")
-            rec = Reconstruction(skel, self.name, 0.0, False, stats, flags + bad, tree.tree_id)
+        if rec is not None:
+            skel = rec.skeleton
             curves = [skel.nodes] if len(skel) > 1 else []
             radii = [np.zeros(len(skel))] if len(skel) > 1 else []
             return DenseModel(rec, None, None, curves, radii, np.array([-1][:len(curves)]),

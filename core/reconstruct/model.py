@@ -279,13 +279,20 @@ def degenerate_flags(xyz: np.ndarray, min_points: int) -> List[str]:
     return []
 
 
-def screen(tree: TreePoints, min_points: int):
-    """The checks every method starts with: (ground_z, flags, degenerate flags).
+def screen(tree: TreePoints, min_points: int, method: str, progress=None):
+    """The checks every method starts with: (ground_z, flags, degenerate reconstruction or None).
 
     Raises :class:`EmptyInputError` for a tree without points; points below
     ``tree.ground_z`` lower the ground to them (flag ``points_below_ground``);
-    the third item is :func:`degenerate_flags` (empty when the tree can be modelled).
+    a tree :func:`degenerate_flags` rejects gets, as third item, the
+    :func:`minimal_skeleton` as a Reconstruction of ``method`` (nothing reached,
+    not connected) with those flags; None when the tree can be modelled.
     """
+    import time
+
+    from ..progress import report
+
+    t0 = time.perf_counter()
     xyz = tree.xyz
     if len(xyz) == 0:
         raise EmptyInputError(f"tree {tree.tree_id} has no points to reconstruct")
@@ -294,4 +301,10 @@ def screen(tree: TreePoints, min_points: int):
     if xyz[:, 2].min() < ground_z:
         flags.append("points_below_ground")
         ground_z = float(xyz[:, 2].min())
-    return ground_z, flags, degenerate_flags(xyz, min_points)
+    bad = degenerate_flags(xyz, min_points)
+    if not bad:
+        return ground_z, flags, None
+    skel = minimal_skeleton(xyz, ground_z)
+    report(progress, 1.0, f"tree {tree.tree_id}: {bad[0].replace('_', ' ')}")
+    stats = {"n_points": int(len(xyz)), "t_total_s": time.perf_counter() - t0}
+    return ground_z, flags, Reconstruction(skel, method, 0.0, False, stats, flags + bad, tree.tree_id)

@@ -41,7 +41,7 @@ from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
 from .direction import direction_field
 from .graph import build_graph
-from .model import Reconstruction, Skeleton, TreePoints, minimal_skeleton, screen
+from .model import Reconstruction, Skeleton, TreePoints, screen
 from .thinning import thin_voxels
 from .trunk import add_trunk_points
 
@@ -299,13 +299,10 @@ class GreedySkeleton:
         """Run §4.2 → §5.4 on one tree; see :func:`sylva.core.reconstruct.reconstruct_tree`."""
         t_all = time.perf_counter()
         xyz = tree.xyz
-        ground_z, flags, bad = screen(tree, self.min_points)
+        ground_z, flags, degenerate = screen(tree, self.min_points, self.name, progress)
+        if degenerate is not None:
+            return degenerate
         stats = {"n_points": int(len(xyz))}
-        if bad:
-            skel = minimal_skeleton(xyz, ground_z)
-            stats["t_total_s"] = time.perf_counter() - t_all
-            report(progress, 1.0, f"tree {tree.tree_id}: {bad[0].replace('_', ' ')}")
-            return Reconstruction(skel, self.name, 0.0, False, stats, flags + bad, tree.tree_id)
 
         check(cancelled)
         t0 = time.perf_counter()
