@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.forest import LEAVES
 from ..core.reconstruct.sketch import SketchTree
 from .common import build_method, method_params
 from .spec import (ENUM, FILE_OUT, INTEGER, LINE, NUMBER, POINT, POLYGON, VECTOR, VECTOR_OUT, Algorithm, Feedback,
@@ -38,8 +39,6 @@ SKETCH_PARAMS = tuple(
         "seed": ("Random seed", "Seed of the small-branch angles: the same inputs and seed give the same tree."),
     }, advanced=("sigma", "cos_theta1", "cos_theta2", "cos_phi1", "cos_phi2", "buds_per_branch",
                  "crowd_radius_fraction", "crowd_max", "step_fraction", "snap_fraction")))
-
-_LEAVES = ("auto", "broadleaf", "needles", "none")
 
 
 def _geometries(table, what: str):
@@ -217,7 +216,7 @@ TREE_FROM_SKETCH = Algorithm(
         *SKETCH_PARAMS,
         Param("LOD", INTEGER, "Level of detail", default=1, minimum=0, maximum=2, advanced=True,
               help="0: light model (4-sided branches); 1: 8 sides, smoothed; 2: 12 sides, every twig."),
-        Param("LEAVES", ENUM, "Leaves", options=_LEAVES, default="auto",
+        Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto",
               help="auto: needle clusters on a conical crown, leaf cards otherwise; none: bare wood."),
         Param("MODEL", FILE_OUT, "3D model (GLB)", file_filter="glTF binary (*.glb)", optional=True,
               help="One GLB with a node tree_1, georeferenced at LOCATION (.prj and origin sidecars)."),
