@@ -64,15 +64,15 @@ def _location(table, feedback: Feedback):
         raise InputError(f"LOCATION ({table.name}): the layer holds no point")
     if len(pts) > 1:
         feedback.warn(f"LOCATION ({table.name}) holds {len(pts)} points; the tree stands at the first one")
-    p = pts[0]
-    z = p.z if p.has_z and np.isfinite(p.z) else 0.0
+    x, y, z = shapely.get_coordinates(pts[0], include_z=True)[0]   # not .z / .has_z: see core.reconstruct.sketch._xy
+    z = z if np.isfinite(z) else 0.0
     crs = table.crs
     if crs is not None and crs.is_geographic:
         raise CRSError(f"LOCATION ({table.name}): its CRS {crs.name} is geographic (degrees); "
                        "save the location in a projected CRS (metres or feet), e.g. the local UTM zone")
     if crs is None:
         feedback.warn(f"LOCATION ({table.name}) has no CRS: the outputs are in a local frame")
-    return np.array([p.x, p.y, z], dtype=np.float64), crs
+    return np.array([x, y, z], dtype=np.float64), crs
 
 
 def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = 1, seed: int = 0):

@@ -173,6 +173,18 @@ class StrokeGraph:
         return Skeleton(np.column_stack([n[:, 0], np.zeros(len(n)), n[:, 1]]), self.parent)
 
 
+def _xy(geom) -> np.ndarray:
+    """(n, 2) float64 x, y of a geometry's vertices.
+
+    ``shapely.get_coordinates``, not ``.coords``: inside QGIS the system GEOS is
+    loaded first, and ``.coords`` asks GEOS whether the geometry has M, which
+    then fails now and then (GEOSException) in qgis_process.
+    """
+    import shapely
+
+    return shapely.get_coordinates(geom).astype(np.float64)
+
+
 def _as_lines(strokes, name: str) -> List[np.ndarray]:
     """Polylines (k, 2) from shapely (Multi)LineStrings or arrays; empty parts dropped."""
     import shapely
@@ -193,11 +205,11 @@ def _as_lines(strokes, name: str) -> List[np.ndarray]:
         parts = shapely.get_parts(g)
         for p in parts:
             if p.geom_type in ("LineString", "LinearRing"):
-                c = np.asarray(p.coords, dtype=np.float64)[:, :2]
+                c = _xy(p)
                 if len(c) >= 2:
                     out.append(c)
             elif p.geom_type == "Polygon":
-                c = np.asarray(p.exterior.coords, dtype=np.float64)[:, :2]
+                c = _xy(p.exterior)
                 out.append(c)
             else:
                 raise InputError(f"{name}: strokes must be lines, got a {p.geom_type}")
@@ -260,11 +272,11 @@ def stroke_graph(strokes, height_m: float, method: SketchTree = SketchTree(), na
             inter = g.intersection(geoms[j])
             for p in shapely.get_parts(inter):
                 if p.geom_type == "Point":
-                    c = np.asarray(p.coords)[0, :2]
+                    c = _xy(p)[0]
                     extra[i].append(c)
                     extra[j].append(c)
                 elif not p.is_empty:  # overlapping pieces: their ends are shared vertices
-                    for c in np.asarray(p.coords)[[0, -1], :2]:
+                    for c in _xy(p)[[0, -1]]:
                         extra[i].append(c)
                         extra[j].append(c)
     for i, l in enumerate(lines):
@@ -280,7 +292,7 @@ def stroke_graph(strokes, height_m: float, method: SketchTree = SketchTree(), na
                     best, bd = j, d
             if best is not None:
                 q = geoms[best].interpolate(geoms[best].project(pe))
-                c = np.asarray(q.coords)[0, :2]
+                c = _xy(q)[0]
                 extra[best].append(c)
                 links.append((end.copy(), c))
     # insert the split points into their strokes (ordered along the stroke), then densify
@@ -611,7 +623,7 @@ def _rings(poly) -> np.ndarray:
         if part.geom_type != "Polygon":
             continue
         for ring in [part.exterior, *part.interiors]:
-            c = np.asarray(ring.coords, dtype=np.float64)[:, :2]
+            c = _xy(ring)
             edges.append(np.column_stack([c[:-1], c[1:]]))
     return np.vstack(edges) if edges else np.zeros((0, 4))
 
