@@ -22,6 +22,7 @@ REQUIRED: Tuple[Tuple[str, str], ...] = (
     ("geographiclib", "geographiclib"),
     ("lxml", "lxml"),
     ("PIL", "pillow"),
+    ("numba", "numba<0.62"),
 )
 
 

@@ -410,3 +410,72 @@ def test_given_tops_a_little_below_their_points_still_get_their_trees():
     labels = segment_trees(cloud, NormalizedCut(), tops=tops_of(low))
     assert set(np.unique(labels)) == {0, 1, 2, 3}
     assert accuracy(labels, truth, [1, 2, 3]) > 0.9
+
+
+def test_voxel_graph_equals_the_kd_tree_reference_with_intensity_and_colour():
+    """The lattice kernel finds exactly the pairs cKDTree.query_pairs finds in the
+    z-scaled ellipsoid, with Eq. 2's weights (one L2 term per feature), including
+    a solid block dense enough to make the edge buffers grow."""
+    import scipy.sparse as sp
+    from scipy.spatial import cKDTree
+    from sylva.core.segment.ncut import _robust_scale, voxel_graph
+
+    rng = np.random.default_rng(5)
+    loose = rng.uniform([0, 0, 2], [30, 25, 20], size=(1000, 3))
+    block = rng.uniform([40, 0, 2], [50, 10, 14], size=(60000, 3))   # every voxel filled
+    xyz = np.vstack([loose, block])
+    n = len(xyz)
+    attrs = {"height": xyz[:, 2].copy(), "intensity": rng.integers(0, 4000, n).astype(np.uint16)}
+    for c in ("red", "green", "blue"):
+        attrs[c] = rng.integers(0, 65535, n).astype(np.uint16)
+    cloud = PointCloud(xyz + [*ORIGIN, GROUND_Z], attrs=attrs)
+    p = NormalizedCut()
+    h = attrs["height"]
+    g = voxel_graph(cloud, cloud.local_xyz(), h, np.ones(n, bool), p)
+    assert len(g.edges) > 8 * g.n           # the growth path ran (initial room: 8 per voxel)
+    tree = cKDTree(g.xyz * [1.0, 1.0, p.radius_m / p.height_m])
+    ref = tree.query_pairs(p.radius_m, output_type="ndarray")
+    ref = ref[np.lexsort((ref[:, 1], ref[:, 0]))]
+    assert np.array_equal(g.edges, ref)     # same pairs, in (a, b) order
+    # Eq. 2 weights from the voxel means
+    counts = np.bincount(g.point_voxel, minlength=g.n)
+
+    def mean(v):
+        return np.bincount(g.point_voxel, weights=v, minlength=g.n) / counts
+    inten = mean(attrs["intensity"].astype(float)) / _robust_scale(attrs["intensity"].astype(float))
+    rgb = np.column_stack([mean(attrs[c].astype(float)) for c in ("red", "green", "blue")]) / 65535.0 / p.sigma_colour
+    a, b = ref.T
+    d = g.xyz[a] - g.xyz[b]
+    expo = (np.hypot(d[:, 0], d[:, 1]) / p.sigma_h_m + np.abs(d[:, 2]) / p.sigma_v_m
+            + np.abs(inten[a] - inten[b]) + np.linalg.norm(rgb[a] - rgb[b], axis=1))
+    np.testing.assert_allclose(g.weights, np.exp(-expo), rtol=1e-12)
+    W = sp.coo_matrix((np.r_[g.weights, g.weights], (np.r_[a, b], np.r_[b, a])), shape=(g.n, g.n)).tocsr()
+    W.sort_indices()
+    assert np.array_equal(g.W.indptr, W.indptr) and np.array_equal(g.W.indices, W.indices)
+    np.testing.assert_array_equal(g.W.data, W.data)
+
+
+def test_geodesic_partition_equals_scipy_dijkstra():
+    """The numba multi-source Dijkstra gives every voxel the same nearest top as
+    scipy.sparse.csgraph.dijkstra(min_only=True) with the documented step cost."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+    from sylva.core.segment import ground_mask
+    from sylva.core.segment.ncut import _geodesic_partition, voxel_graph
+
+    cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
+    h = cloud.attrs["height"]
+    crown = (h >= 2.0) & ~ground_mask(cloud, h)
+    g = voxel_graph(cloud, cloud.local_xyz(), h, crown, NormalizedCut())
+    rng = np.random.default_rng(2)
+    tops = rng.choice(g.n, 6, replace=False)
+    W = g.W
+    row = np.repeat(np.arange(g.n), np.diff(W.indptr))
+    cost = -np.log(W.data) + 1e-9 + 100.0 * np.maximum(g.xyz[W.indices, 2] - g.xyz[row, 2], 0)
+    _, _, src = dijkstra(sp.csr_matrix((cost, W.indices, W.indptr), shape=W.shape), indices=tops,
+                         min_only=True, return_predecessors=True)
+    lookup = np.full(g.n + 1, -1)
+    lookup[tops] = np.arange(len(tops))
+    expected = lookup[np.where(src >= 0, src, g.n)]
+    got = _geodesic_partition(g, tops, 100.0)
+    assert (got >= 0).mean() > 0.5 and np.array_equal(got, expected)
