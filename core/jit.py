@@ -1,0 +1,102 @@
+"""Compiled kernels for the inherently sequential loops (numba), in one place.
+
+Kernels are plain Python functions over numpy arrays and scalars, decorated
+with :func:`njit`.  Nothing is imported or compiled at import time: the
+first call of a kernel imports numba and compiles it with
+``numba.njit(cache=True, nogil=True)``, so loading the plugin (QGIS start-up,
+every worker process of the pipeline) does not pay for numba, and a process
+that never reconstructs a tree never imports it.
+
+Caching: numba stores the machine code next to the kernel's module
+(``__pycache__``) and, where that folder is not writable (a system-wide
+install), in the user's cache folder (``~/.cache/numba`` or the platform's
+equivalent); ``NUMBA_CACHE_DIR`` overrides both.  When neither can be
+written the kernel is compiled without a cache (a cold compile per process,
+still correct).  A cache written by another numba/Python version or for
+another CPU is recompiled, never used wrongly (numba checks both).
+
+Without numba, or with the environment variable ``SYLVA_NO_JIT=1``, the
+kernels run as ordinary Python (same results, much slower);
+:func:`jit_status` says which is in use.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import threading
+
+__all__ = ["njit", "jit_status", "Kernel"]
+
+_LOCK = threading.RLock()
+_NUMBA = None          # the numba module once imported, False when unavailable/disabled
+
+
+def _numba():
+    global _NUMBA
+    if _NUMBA is None:
+        with _LOCK:
+            if _NUMBA is None:
+                if os.environ.get("SYLVA_NO_JIT", "").strip() not in ("", "0"):
+                    _NUMBA = False
+                else:
+                    try:
+                        import numba
+                        _NUMBA = numba
+                    except ImportError:          # pragma: no cover - numba is a dependency
+                        _NUMBA = False
+    return _NUMBA
+
+
+class Kernel:
+    """A function compiled by numba on its first call (see the module docstring).
+
+    ``py_func`` is the undecorated Python function; ``compiled`` is what
+    calls go to once loaded (the numba dispatcher, or ``py_func`` itself
+    without numba).
+    """
+
+    def __init__(self, py_func):
+        self.py_func = py_func
+        self.compiled = None
+        self.cached = None          # True: cache enabled; False: compiled without cache; None: not numba
+        functools.update_wrapper(self, py_func)
+
+    def load(self):
+        """Compile or load the kernel now (normally done by the first call); returns the callable."""
+        if self.compiled is None:
+            with _LOCK:
+                if self.compiled is None:
+                    numba = _numba()
+                    if not numba:
+                        self.compiled = self.py_func
+                    else:
+                        try:
+                            fn = numba.njit(cache=True, nogil=True)(self.py_func)
+                            self.cached = True
+                        except RuntimeError:     # "cannot cache function ...: no locator available"
+                            fn = numba.njit(nogil=True)(self.py_func)
+                            self.cached = False
+                        self.compiled = fn
+        return self.compiled
+
+    def __call__(self, *args):
+        fn = self.compiled
+        if fn is None:
+            fn = self.load()
+        return fn(*args)
+
+
+def njit(py_func):
+    """Decorator: ``py_func`` becomes a :class:`Kernel` (numba ``njit(cache=True, nogil=True)`` on first call).
+
+    Kernels must not call other kernels (each is compiled on its own); write
+    them as self-contained loops over numpy arrays.
+    """
+    return Kernel(py_func)
+
+
+def jit_status() -> dict:
+    """Which backend runs the kernels: ``{"numba": version or None, "cache_dir": override or None}``."""
+    numba = _numba()
+    return {"numba": getattr(numba, "__version__", None) if numba else None,
+            "cache_dir": os.environ.get("NUMBA_CACHE_DIR") or None}
