@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 
 from .cloud import PointCloud
 from .errors import EmptyInputError, InputError
+from .jit import njit
 from .progress import CancelCheck, Progress, check, report
 from .raster import Raster
 
@@ -210,27 +211,58 @@ def _local_maxima(xy: np.ndarray, h: np.ndarray, window: Window,
     if len(cand) == 0:
         return cand
     radius = window.diameter(h[cand]) / 2.0
-    tree = cKDTree(xy)
+    # points bucketed in square cells at least as wide as the widest window
+    # radius (and few enough cells for the extent), CSR by cell
+    lo = xy.min(axis=0)
+    span = np.maximum(xy.max(axis=0) - lo, 1e-6)
+    cell = max(float(radius.max()), float(np.sqrt(span[0] * span[1] / (2.0 * len(xy) + 1024))), 1e-3)
+    nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
+    key = np.floor((xy[:, 0] - lo[0]) / cell).astype(np.int64) * ny + np.floor((xy[:, 1] - lo[1]) / cell).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(nx * ny + 1))
+    pts = np.ascontiguousarray(xy[order])
+    hs = np.ascontiguousarray(h[order])
     is_top = np.zeros(len(cand), dtype=bool)
-    # Bound memory: about 4 M candidate-neighbour pairs per chunk.
-    span = np.maximum(xy.max(axis=0) - xy.min(axis=0), 1.0)
-    per_window = len(xy) / (span[0] * span[1]) * np.pi * float(radius.max()) ** 2
-    chunk = int(max(64, min(50_000, 4e6 / max(per_window, 1.0))))
+    chunk = 200_000
     for start in range(0, len(cand), chunk):
         check(cancelled)
         sl = slice(start, start + chunk)
-        sub = cKDTree(xy[cand[sl]])
-        near = sub.sparse_distance_matrix(tree, float(radius[sl].max()), output_type="ndarray")
-        i, j, d = near["i"], near["j"], near["v"]
-        inside = d <= radius[sl][i]
-        wmax = np.full(len(cand[sl]), -np.inf)
-        np.maximum.at(wmax, i[inside], h[j[inside]])
-        own = h[cand[sl]]
-        is_top[sl] = own >= wmax  # the candidate itself is in its window (d = 0)
+        is_top[sl] = _window_tops(pts, hs, starts, xy[cand[sl]], h[cand[sl]], radius[sl],
+                                  float(lo[0]), float(lo[1]), cell, nx, ny)
         report(progress, min(1.0, (start + chunk) / len(cand)), "tree tops")
     tops = cand[is_top]
     keep = _one_per_plateau(xy[tops], h[tops], radius[is_top])
     return tops[keep]
+
+
+@njit
+def _window_tops(pts, hs, starts, cxy, ch, radius, x0, y0, cell, nx, ny):
+    """For each candidate (cxy, ch, radius): True when no point of ``pts``
+    (bucketed by cell: ``starts``) within ``radius`` is higher.  Stops at the
+    first higher point found, which is most candidates' fate."""
+    out = np.empty(len(ch), dtype=np.bool_)
+    for k in range(len(ch)):
+        px, py, own, r = cxy[k, 0], cxy[k, 1], ch[k], radius[k]
+        reach = int(np.ceil(r / cell))
+        ix = int(np.floor((px - x0) / cell))
+        iy = int(np.floor((py - y0) / cell))
+        top = True
+        for gx in range(max(ix - reach, 0), min(ix + reach, nx - 1) + 1):
+            if not top:
+                break
+            for gy in range(max(iy - reach, 0), min(iy + reach, ny - 1) + 1):
+                if not top:
+                    break
+                g = gx * ny + gy
+                for j in range(starts[g], starts[g + 1]):
+                    if hs[j] > own:
+                        dx = pts[j, 0] - px
+                        dy = pts[j, 1] - py
+                        if np.sqrt(dx * dx + dy * dy) <= r:
+                            top = False
+                            break
+        out[k] = top
+    return out
 
 
 def _shadowed(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, others: np.ndarray,

@@ -218,3 +218,21 @@ def test_steep_apex_adds_nothing_on_rounded_crowns_and_needs_points():
         find_tree_tops(cloud, apex="steep")
     with pytest.raises(InputError, match="sectors"):
         SteepApex(sectors=9)
+
+
+def test_window_maxima_equal_a_brute_force_search():
+    """The bucketed kernel keeps exactly the candidates with no higher point within
+    their (height-dependent) window radius, as an all-pairs search does."""
+    from sylva.core.tops import VariableWindow, _local_maxima, _one_per_plateau
+
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0, 60, size=(3000, 2))
+    h = np.round(rng.uniform(2, 30, size=3000), 1)      # rounded: ties happen
+    window = VariableWindow.combined()
+    got = _local_maxima(xy, h, window, None, None, cand=np.arange(len(xy)))
+    r = window.diameter(h) / 2.0
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    higher = (h[None, :] > h[:, None]) & (d <= r[:, None])
+    maxima = np.flatnonzero(~higher.any(axis=1))
+    expected = maxima[_one_per_plateau(xy[maxima], h[maxima], r[maxima])]   # one per plateau
+    assert len(expected) > 10 and np.array_equal(got, expected)
