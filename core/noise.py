@@ -19,9 +19,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .cloud import PointCloud
+from .jit import njit
 
 NOISE_CLASSES = (7, 18)
 
@@ -72,6 +72,52 @@ def noise_mask(cloud: PointCloud, method: IsolatedVoxels = IsolatedVoxels()) -> 
     return mask
 
 
+def _alone(xyz: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the points with no other point nearer than ``radius`` (3-D; a
+    duplicate counts as a neighbour).  Points are bucketed in columns of
+    ``radius`` (fewer when the extent is large and the points few)."""
+    lo = xyz[:, :2].min(axis=0)
+    span = np.maximum(xyz[:, :2].max(axis=0) - lo, 1e-6)
+    cell = max(radius, float(np.sqrt(span[0] * span[1] / (2.0 * len(xyz) + 1024))))
+    nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
+    ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
+    key = ij[:, 0] * ny + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(nx * ny + 1))
+    alone = np.empty(len(xyz), dtype=bool)
+    alone[order] = _alone_sorted(np.ascontiguousarray(xyz[order]), key[order], starts, ny, radius)
+    return alone
+
+
+@njit
+def _alone_sorted(pts, key, starts, ny, radius):
+    """:func:`_alone` on points sorted by column ``key`` (CSR ``starts``)."""
+    r2 = radius * radius
+    out = np.empty(len(pts), dtype=np.bool_)
+    nx = (len(starts) - 1) // ny
+    for i in range(len(pts)):
+        ix = key[i] // ny
+        iy = key[i] - ix * ny
+        alone = True
+        for gx in range(max(ix - 1, 0), min(ix + 1, nx - 1) + 1):
+            if not alone:
+                break
+            for gy in range(max(iy - 1, 0), min(iy + 1, ny - 1) + 1):
+                if not alone:
+                    break
+                g = gx * ny + gy
+                for j in range(starts[g], starts[g + 1]):
+                    if j != i:
+                        dx = pts[j, 0] - pts[i, 0]
+                        dy = pts[j, 1] - pts[i, 1]
+                        dz = pts[j, 2] - pts[i, 2]
+                        if dx * dx + dy * dy + dz * dz < r2:
+                            alone = False
+                            break
+        out[i] = alone
+    return out
+
+
 def isolated_points(cloud: PointCloud, isolation_m: Optional[float] = 2.0,
                     among: Optional[np.ndarray] = None) -> np.ndarray:
     """Classified noise (7, 18) and, when ``isolation_m`` is given, points with no other point
@@ -83,9 +129,7 @@ def isolated_points(cloud: PointCloud, isolation_m: Optional[float] = 2.0,
     if isolation_m is not None and isolation_m > 0:
         idx = np.nonzero(~noise if among is None else (~noise & among))[0]
         if len(idx) > 1:
-            loc = cloud.local_xyz()[idx]
-            dist, _ = cKDTree(loc).query(loc, k=2, distance_upper_bound=float(isolation_m), workers=-1)
-            noise[idx[~np.isfinite(dist[:, 1])]] = True
+            noise[idx[_alone(cloud.local_xyz()[idx], float(isolation_m))]] = True
         elif len(idx) == 1:
             noise[idx] = True
     return noise

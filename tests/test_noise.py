@@ -53,3 +53,18 @@ def test_parameters_change_the_verdict():
 @pytest.mark.parametrize("n", [0, 1])
 def test_tiny_clouds(n):
     assert noise_mask(PointCloud(np.zeros((n, 3)))).tolist() == [True] * n
+
+
+def test_alone_equals_a_kd_tree_search_on_quantised_coordinates():
+    """The bucketed kernel agrees with cKDTree.query(k=2, distance_upper_bound)
+    (a neighbour at exactly the radius does not count), duplicates included."""
+    from scipy.spatial import cKDTree
+    from sylva.core.noise import _alone
+
+    rng = np.random.default_rng(4)
+    xyz = np.round(rng.uniform([0, 0, 0], [200, 150, 40], size=(20000, 3)), 0)   # 1 m grid: exact 2 m gaps
+    xyz = np.vstack([xyz, xyz[:50]])                                            # duplicates
+    dist, _ = cKDTree(xyz).query(xyz, k=2, distance_upper_bound=2.0)
+    expected = ~np.isfinite(dist[:, 1])
+    got = _alone(xyz, 2.0)
+    assert 100 < expected.sum() < len(xyz) - 100 and np.array_equal(got, expected)
