@@ -43,6 +43,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from .cloud import PointCloud
 from .errors import EmptyInputError, InputError
+from .jit import njit
 from .noise import NOISE_CLASSES, isolated_points
 from .progress import CancelCheck, Progress, check, report
 from .raster import Raster
@@ -325,36 +326,67 @@ def _barycentric(tri: Delaunay, simplex: np.ndarray, query: np.ndarray) -> np.nd
 def _locate(tri: Delaunay, query: np.ndarray, max_steps: int = 500):
     """Triangle holding each query point (-1 outside the hull) and its barycentric coordinates.
 
-    A vectorised visibility walk (which terminates on Delaunay triangulations):
-    start in a triangle of the nearest vertex, step across the edge facing the most
-    negative barycentric coordinate.  Faster than ``Delaunay.find_simplex``, whose
-    per-simplex transforms dominate the cost on large ground sets.
+    A visibility walk (which terminates on Delaunay triangulations), compiled:
+    the queries are visited in a serpentine order (:func:`_spatial_order`) and
+    each walk starts in the triangle of the previous one, stepping across the
+    edge facing the most negative barycentric coordinate, so a walk is a few
+    steps.  Faster than ``Delaunay.find_simplex``, whose per-simplex
+    transforms dominate the cost on large ground sets.
     """
+    query = np.ascontiguousarray(query, dtype=np.float64)
+    order = _spatial_order(query)
+    simplex = np.full(len(query), -1, dtype=np.int64)
+    bary = np.zeros((len(query), 3))
+    s, b = _walk(np.ascontiguousarray(tri.points), tri.simplices.astype(np.int64),
+                 tri.neighbors.astype(np.int64), query[order], max_steps)
+    simplex[order], bary[order] = s, b
+    lost = np.flatnonzero(simplex == -2)
+    if len(lost):  # pragma: no cover - numerical corner cases
+        found = tri.find_simplex(query[lost])
+        simplex[lost] = found
+        ok = found >= 0
+        bary[lost[ok]] = _barycentric(tri, found[ok], query[lost[ok]])
+    return simplex, bary
+
+
+@njit
+def _walk(points, simplices, neighbors, query, max_steps):
+    """:func:`_locate`'s walks, queries in order; -1 outside the hull, -2 lost."""
     n = len(query)
     simplex = np.full(n, -1, dtype=np.int64)
     bary = np.zeros((n, 3))
-    _, nearest = cKDTree(tri.points).query(query, workers=-1)
-    current = tri.vertex_to_simplex[nearest].astype(np.int64)
-    current[current < 0] = 0  # a vertex qhull dropped as coincident: walk from anywhere
-    active = np.arange(n)
     eps = -1e-12
-    for _ in range(max_steps):
-        if len(active) == 0:
-            break
-        b = _barycentric(tri, current, query[active])
-        worst = np.argmin(b, axis=1)
-        inside = b[np.arange(len(active)), worst] >= eps
-        simplex[active[inside]] = current[inside]
-        bary[active[inside]] = b[inside]
-        step = tri.neighbors[current[~inside], worst[~inside]]
-        active, current = active[~inside], step
-        keep = current >= 0  # -1: crossed the hull, so outside it
-        active, current = active[keep], current[keep]
-    if len(active):  # pragma: no cover - numerical corner cases
-        found = tri.find_simplex(query[active])
-        ok = found >= 0
-        simplex[active[ok]] = found[ok]
-        bary[active[ok]] = _barycentric(tri, found[ok], query[active[ok]])
+    start = 0
+    for q in range(n):
+        qx, qy = query[q, 0], query[q, 1]
+        cur = start
+        for _ in range(max_steps):
+            a, b, c = simplices[cur, 0], simplices[cur, 1], simplices[cur, 2]
+            v0x, v0y = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+            v1x, v1y = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1]
+            v2x, v2y = qx - points[a, 0], qy - points[a, 1]
+            det = v0x * v1y - v0y * v1x
+            l1 = (v2x * v1y - v2y * v1x) / det
+            l2 = (v0x * v2y - v0y * v2x) / det
+            l0 = 1.0 - l1 - l2
+            if not (np.isfinite(l0) and np.isfinite(l1) and np.isfinite(l2)):
+                l0 = l1 = l2 = -np.inf
+            worst, low = 0, l0
+            if l1 < low:
+                worst, low = 1, l1
+            if l2 < low:
+                worst, low = 2, l2
+            if low >= eps:
+                simplex[q] = cur
+                bary[q, 0], bary[q, 1], bary[q, 2] = l0, l1, l2
+                start = cur
+                break
+            nxt = neighbors[cur, worst]
+            if nxt < 0:          # crossed the hull: outside it
+                break
+            cur = nxt
+        else:
+            simplex[q] = -2
     return simplex, bary
 
 

@@ -289,3 +289,25 @@ def test_is_normalized_on_real_tiles():
     ground = ground_mask(autzen)
     assert np.all(np.abs(h[ground]) < 1e-6)     # TIN through the ground points
     assert 20.0 < h.max() < 40.0                # metres, not feet (tallest tree)
+
+
+def test_tin_walk_finds_the_triangles_qhull_finds():
+    """The compiled visibility walk locates every query in the triangle
+    Delaunay.find_simplex gives (or one sharing the point, on an edge), with
+    the barycentric coordinates that reproduce it; outside the hull it says -1."""
+    from scipy.spatial import Delaunay
+    from sylva.core.terrain import _locate
+
+    rng = np.random.default_rng(8)
+    xy = rng.uniform(0, 100, size=(3000, 2))
+    tri = Delaunay(xy)
+    query = rng.uniform(-10, 110, size=(20000, 2))
+    simplex, bary = _locate(tri, query)
+    expected = tri.find_simplex(query)
+    assert np.array_equal(simplex < 0, expected < 0) and (expected < 0).sum() > 100
+    inside = simplex >= 0
+    assert (simplex[inside] == expected[inside]).mean() > 0.999
+    corners = tri.points[tri.simplices[simplex[inside]]]
+    back = (corners * bary[inside, :, None]).sum(axis=1)
+    np.testing.assert_allclose(back, query[inside], atol=1e-9)
+    assert (bary[inside] >= -1e-12).all()
