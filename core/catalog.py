@@ -363,6 +363,9 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
         try:
             con.execute("PRAGMA application_id = 1196444487")
             con.execute("PRAGMA user_version = 10200")
+            # a temporary file renamed at the end: no journal, no fsync per part
+            con.execute("PRAGMA journal_mode = OFF")
+            con.execute("PRAGMA synchronous = OFF")
             created = {}
             for k, part in enumerate(parts):
                 con.execute("ATTACH DATABASE ? AS part", (str(part),))
