@@ -3,6 +3,7 @@
 
     python benchmarks/reconstruction.py [--seed 1] [--size 100] [--k 16] [--per-tree]
                                         [--methods greedy,guided,hybrid]
+    python benchmarks/reconstruction.py --kernels [--seed 1] [--size 100]
 
 Data sets, each tree reconstructed from its own points with
 ``reconstruct_tree(TreePoints(...), GreedySkeleton(...))``:
@@ -25,6 +26,15 @@ fallback), coverage (share of a tree's points within 0.5 m of its skeleton
 segments, median over trees) and, for synthetic trees, the horizontal
 distance from the skeleton root to the true stem base (median; share
 < 0.5 m; single-stem trees).
+
+``--kernels`` instead times the compiled kernels (core/jit.py, numba):
+the cold compile (first call in a fresh process with an empty cache) and
+the cached load (first call in a fresh process with the cache written),
+each in its own subprocess; then, on every tree of the synthetic stand (20
+pulses/m2) and of the bundled sample, CPU time per tree (process_time) of
+thin_voxels, build_graph and greedy_skeleton against the numpy/heapq/cKDTree
+implementations they replaced (the references of
+tests/test_skeleton_kernel.py), and whether the results are identical.
 """
 from __future__ import annotations
 
@@ -206,6 +216,122 @@ def mixed_conifer():
     return [TreePoints(int(i), xyz[g], 0.0) for i, g in zip(ids, np.split(order, start[1:])) if i > 0]
 
 
+_COLD_SCRIPT = """
+import time
+t0 = time.perf_counter()
+import numpy as np
+from sylva.core.reconstruct import GreedySkeleton, TreePoints
+t1 = time.perf_counter()
+rng = np.random.default_rng(0)
+tree = TreePoints(0, rng.random((300, 3)) * [4, 4, 10] + [0, 0, 5], 0.0)
+c = time.process_time(); t2 = time.perf_counter()
+GreedySkeleton().reconstruct(tree)
+t3 = time.perf_counter(); c3 = time.process_time()
+GreedySkeleton().reconstruct(tree)
+t4 = time.perf_counter()
+print(t1 - t0, t3 - t2, c3 - c, t4 - t3)
+"""
+
+
+def jit_start_up():
+    """Cold compile and cached load of the kernels, each in a fresh process."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    from sylva.core.jit import jit_status
+    print(f"\n== compiled kernels: {jit_status()}")
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for label in ("cold (empty cache)", "cached", "cached"):
+            out = subprocess.run([sys.executable, "-c", _COLD_SCRIPT], env=env, capture_output=True, text=True,
+                                 check=True).stdout.split()
+            imp, first, first_cpu, second = map(float, out)
+            print(f"   {label:19s} import sylva {imp:5.2f} s   first tree (numba import + kernels) "
+                  f"{first:6.2f} s wall, {first_cpu:6.2f} s cpu   next tree {second * 1e3:6.1f} ms")
+
+
+def kernels_vs_references(name, trees):
+    """CPU ms per tree of each step, compiled kernel vs the implementation it replaced."""
+    import importlib.util
+
+    from sylva.core.reconstruct import thinning
+    from sylva.core.reconstruct.direction import direction_field
+    from sylva.core.reconstruct.graph import build_graph
+    from sylva.core.reconstruct.model import screen
+    from sylva.core.reconstruct.skeleton import choose_end, greedy_skeleton
+    from sylva.core.reconstruct.trunk import add_trunk_points
+
+    spec = importlib.util.spec_from_file_location("_ref", HERE.parents[1] / "tests" / "test_skeleton_kernel.py")
+    ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ref)
+    kernel = thinning._thin_kernel
+
+    def old_thin_kernel(nbr, keep, *args):
+        survivors, passes = ref.reference_thinning(nbr, keep, args[-1])
+        black = np.zeros(len(nbr) + 1, dtype=bool)
+        black[survivors] = True
+        return black, passes
+
+    m = GreedySkeleton()
+    cpu = {key: 0.0 for key in ("thin_old", "thin_new", "graph_old", "graph_new", "greedy_old", "greedy_new")}
+    same = {"thin": 0, "graph": 0, "greedy": 0}
+    count = 0
+    T = time.process_time
+    for tree in trees:
+        if screen(tree, m.min_points, m.name, None)[2] is not None:
+            continue
+        count += 1
+        trunk = add_trunk_points(tree.xyz, tree.ground_z, m.trunk_radius_m, m.trunk_spacing_m)
+        added = trunk.points[1:]
+        all_xyz = np.concatenate([tree.xyz, added])
+        keep = np.r_[np.zeros(len(tree.xyz), bool), np.ones(len(added), bool)]
+        t = T()
+        thinning._thin_kernel = old_thin_kernel
+        try:
+            th_old = thinning.thin_voxels(all_xyz, m.voxel_m, keep=keep)
+        finally:
+            thinning._thin_kernel = kernel
+        cpu["thin_old"] += T() - t
+        t = T()
+        th = thinning.thin_voxels(all_xyz, m.voxel_m, keep=keep)
+        cpu["thin_new"] += T() - t
+        same["thin"] += bool(np.array_equal(th.voxel_index, th_old.voxel_index))
+        cand = np.concatenate([trunk.root[None, :], th.points])
+        t = T()
+        adj_old, ncomp_old, _, _ = ref.reference_graph(cand, m.radius_m, m.k)
+        cpu["graph_old"] += T() - t
+        t = T()
+        g = build_graph(cand, m.radius_m, m.k)
+        cpu["graph_new"] += T() - t
+        same["graph"] += bool(np.array_equal(g.adjacency.indices, adj_old.indices)
+                              and np.array_equal(g.adjacency.indptr, adj_old.indptr)
+                              and np.array_equal(g.adjacency.data, adj_old.data) and g.n_components == ncomp_old)
+        u = direction_field(cand)
+        end = choose_end(cand, g.adjacency, 0, trunk.direction, m.alpha_max_deg)
+        args = (cand, g.adjacency, u, 0, end, m.alpha_max_deg, m.beta_max_deg, m.phi_max_deg, m.regrow_pruned)
+        t = T()
+        r_old = ref.reference_greedy(*args)
+        cpu["greedy_old"] += T() - t
+        t = T()
+        r = greedy_skeleton(*args)
+        cpu["greedy_new"] += T() - t
+        same["greedy"] += bool(np.array_equal(r.point_of_node, r_old[0]) and np.array_equal(r.parent, r_old[1])
+                               and np.array_equal(r.visited, r_old[2])
+                               and np.array_equal(r.alpha_deg, r_old[3], equal_nan=True))
+    print(f"\n== {name}: {count} trees, CPU ms per tree (process_time), replaced implementation -> kernel")
+    total_old = total_new = 0.0
+    for step, label in (("thin", "thin_voxels (§5.1)"), ("graph", "build_graph (§5.2)"),
+                        ("greedy", "greedy_skeleton (§5.4)")):
+        old, new = cpu[f"{step}_old"] / count * 1e3, cpu[f"{step}_new"] / count * 1e3
+        total_old += old
+        total_new += new
+        print(f"   {label:24s} {old:7.2f} -> {new:6.2f} ms  (x{old / max(new, 1e-9):5.1f})   "
+              f"identical on {same[step]}/{count} trees")
+    print(f"   {'the three steps':24s} {total_old:7.2f} -> {total_new:6.2f} ms  (x{total_old / total_new:5.1f})")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1)
@@ -215,7 +341,17 @@ def main(argv=None):
     ap.add_argument("--per-tree", action="store_true")
     ap.add_argument("--verbatim", action="store_true", help="Algorithm 2 verbatim (regrow_pruned=False)")
     ap.add_argument("--methods", default="greedy,guided,hybrid")
+    ap.add_argument("--kernels", action="store_true",
+                    help="time the compiled kernels (cold/cached start-up, vs the replaced implementations)")
     args = ap.parse_args(argv)
+    if args.kernels:
+        jit_start_up()
+        reconstruct_tree(TreePoints(0, np.random.default_rng(0).random((300, 3)) * [4, 4, 10] + [0, 0, 5], 0.0),
+                         GreedySkeleton())                              # load the kernels once
+        trees, _, _ = synthetic(20.0, args.seed, args.size)
+        kernels_vs_references(f"synthetic 'medium' stand {args.size:.0f} m, 20 pulses/m2", trees)
+        kernels_vs_references("bundled sample (resources/sample)", sample_tile())
+        return
     kw = {}
     if args.k is not None:
         kw["k"] = args.k

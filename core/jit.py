@@ -12,8 +12,10 @@ Caching: numba stores the machine code next to the kernel's module
 install), in the user's cache folder (``~/.cache/numba`` or the platform's
 equivalent); ``NUMBA_CACHE_DIR`` overrides both.  When neither can be
 written the kernel is compiled without a cache (a cold compile per process,
-still correct).  A cache written by another numba/Python version or for
-another CPU is recompiled, never used wrongly (numba checks both).
+still correct); Sylva does not fall back to a shared temporary folder, as
+numba's cache index is a pickle that another user could plant there.  A
+cache written by another numba/Python version or for another CPU is
+recompiled, never used wrongly (numba checks both).
 
 Without numba, or with the environment variable ``SYLVA_NO_JIT=1``, the
 kernels run as ordinary Python (same results, much slower);

@@ -27,17 +27,24 @@ are first in, first out; pruned candidates beyond the kept child are
 released (``regrow_pruned``, see :func:`greedy_skeleton`); and the direction
 field at added trunk points is the trunk's own direction (§4.2 gives it;
 Eq. 5 knows nothing of an Eq. 3 trunk that leans).
+
+The loop is inherently sequential (each expansion depends on what earlier
+ones visited), so it runs as a compiled kernel (:mod:`sylva.core.jit`,
+numba) over the CSR arrays: a binary heap for Q, the pruning walk of
+Fig. 14b as a double loop.  tests/test_skeleton_kernel.py checks it against
+the straightforward numpy/heapq implementation it replaced.
 """
 from __future__ import annotations
 
-import heapq
+import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import InputError
+from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
 from .direction import direction_field
 from .graph import build_graph
@@ -55,46 +62,211 @@ class GreedyResult(NamedTuple):
     alpha_deg: np.ndarray       # (m,) bending angle of each node's segment to its parent's (nan at the root/end)
 
 
-_POW2 = 1 << np.arange(62, dtype=np.int64)
+@njit
+def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, cos_b, cos_p, regrow):
+    """Algorithm 2's loop (see :func:`greedy_skeleton`); plain loops for numba.
 
-
-def _prune(close: np.ndarray, beyond: Optional[np.ndarray]):
-    """Greedy pruning of candidates sorted by α (Algorithm 2's double loop).
-
-    Walking the candidates in order, each one still alive is kept and
-    removes the alive ones within φ_max of it (``close``); with ``beyond``
-    given, those removed that lie farther than the kept one are returned as
-    ``released``.  Rows become bit masks (Python ints) when there are at
-    most 62 candidates, which keeps the sequential walk cheap.
+    Returns (point_of_node, parent, cos α of each node's segment (nan for the
+    first segment), all three valid up to the returned node count, visited).  Dot products are written out as
+    (x·x' + y·y') + z·z' everywhere, so the results do not depend on a BLAS.
     """
-    c = len(close)
-    kept, released = [], []
-    if c <= 62:
-        w = _POW2[:c]
-        rows = (close @ w).tolist()
-        far_rows = (beyond @ w).tolist() if beyond is not None else None
-        alive = (1 << c) - 1
-        for l in range(c):
-            if alive >> l & 1:
-                kept.append(l)
-                pruned = alive & rows[l]
-                alive &= ~rows[l]
-                if far_rows is not None:
-                    rel = pruned & far_rows[l]
-                    while rel:
-                        low = rel & -rel
-                        released.append(low.bit_length() - 1)
-                        rel ^= low
-        return kept, released
-    alive = np.ones(c, dtype=bool)
-    for l in range(c):
-        if alive[l]:
-            kept.append(l)
-            pruned = alive & close[l]
-            alive &= ~close[l]
-            if beyond is not None:
-                released.extend(np.flatnonzero(pruned & beyond[l]).tolist())
-    return kept, released
+    n = points.shape[0]
+    nnz = indices.shape[0]
+    # Directed edges i -> j that pass β_j < β_max, per row by decreasing length
+    # (stable), with their unit vectors: β_j does not depend on the parent segment.
+    e_j = np.empty(nnz, np.int64)
+    e_u = np.empty((nnz, 3))
+    e_len = np.empty(nnz)
+    ptr = np.zeros(n + 1, np.int64)
+    m = 0
+    for i in range(n):
+        s = m
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            dz = points[j, 2] - points[i, 2]
+            ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not ln > 1e-12:
+                continue
+            ux = dx / ln
+            uy = dy / ln
+            uz = dz / ln
+            if ux * directions[j, 0] + uy * directions[j, 1] + uz * directions[j, 2] > cos_b:
+                e_j[m] = j
+                e_u[m, 0] = ux
+                e_u[m, 1] = uy
+                e_u[m, 2] = uz
+                e_len[m] = ln
+                m += 1
+        for t in range(s + 1, m):                   # insertion sort: stable, rows are short
+            kj = e_j[t]
+            kx = e_u[t, 0]
+            ky = e_u[t, 1]
+            kz = e_u[t, 2]
+            kl = e_len[t]
+            q = t - 1
+            while q >= s and e_len[q] < kl:
+                e_j[q + 1] = e_j[q]
+                e_u[q + 1, 0] = e_u[q, 0]
+                e_u[q + 1, 1] = e_u[q, 1]
+                e_u[q + 1, 2] = e_u[q, 2]
+                e_len[q + 1] = e_len[q]
+                q -= 1
+            e_j[q + 1] = kj
+            e_u[q + 1, 0] = kx
+            e_u[q + 1, 1] = ky
+            e_u[q + 1, 2] = kz
+            e_len[q + 1] = kl
+        ptr[i + 1] = m
+
+    visited = np.zeros(n, np.bool_)
+    node_of_point = np.empty(n, np.int64)
+    for i in range(n):
+        node_of_point[i] = -1
+    point_of_node = np.empty(n, np.int64)
+    parent = np.empty(n, np.int64)
+    node_cos = np.empty(n)
+    visited[start] = True
+    visited[end] = True
+    point_of_node[0] = start
+    parent[0] = -1
+    node_cos[0] = np.nan
+    node_of_point[start] = 0
+    nodes = 1
+    # Q: binary heap of (key, counter, edge); key = -cos α (α ascending), the
+    # counter makes equal keys first in, first out; edge -1 is the first segment.
+    h_key = np.empty(n + 1)
+    h_cnt = np.empty(n + 1, np.int64)
+    h_edge = np.empty(n + 1, np.int64)
+    hs = 0
+    if end != start:
+        point_of_node[1] = end
+        parent[1] = 0
+        node_cos[1] = np.nan
+        node_of_point[end] = 1
+        nodes = 2
+        h_key[0] = 0.0
+        h_cnt[0] = 0
+        h_edge[0] = -1
+        hs = 1
+    counter = 1
+    deg = 0
+    for i in range(n):
+        deg = max(deg, ptr[i + 1] - ptr[i])
+    c_edge = np.empty(deg, np.int64)
+    c_cos = np.empty(deg)
+    c_rank = np.empty(deg)
+    alive = np.empty(deg, np.bool_)
+    while hs > 0:
+        # pop the smallest (key, counter)
+        e0 = h_edge[0]
+        hs -= 1
+        if hs > 0:
+            k_last = h_key[hs]
+            c_last = h_cnt[hs]
+            ed_last = h_edge[hs]
+            pos = 0
+            while True:
+                ch = 2 * pos + 1
+                if ch >= hs:
+                    break
+                r = ch + 1
+                if r < hs and (h_key[r] < h_key[ch] or (h_key[r] == h_key[ch] and h_cnt[r] < h_cnt[ch])):
+                    ch = r
+                if h_key[ch] < k_last or (h_key[ch] == k_last and h_cnt[ch] < c_last):
+                    h_key[pos] = h_key[ch]
+                    h_cnt[pos] = h_cnt[ch]
+                    h_edge[pos] = h_edge[ch]
+                    pos = ch
+                else:
+                    break
+            h_key[pos] = k_last
+            h_cnt[pos] = c_last
+            h_edge[pos] = ed_last
+        if e0 < 0:
+            i = end
+            vx = v0[0]
+            vy = v0[1]
+            vz = v0[2]
+        else:
+            i = e_j[e0]
+            vx = e_u[e0, 0]
+            vy = e_u[e0, 1]
+            vz = e_u[e0, 2]
+        # candidates: not visited, α_j < α_max (β_j < β_max already holds)
+        c = 0
+        for e in range(ptr[i], ptr[i + 1]):
+            if visited[e_j[e]]:
+                continue
+            cs = e_u[e, 0] * vx + e_u[e, 1] * vy + e_u[e, 2] * vz
+            if cs > cos_a:
+                c_edge[c] = e
+                c_cos[c] = cs
+                c_rank[c] = -np.rint(cs * 1e12)
+                c += 1
+        if c == 0:
+            continue
+        for t in range(c):
+            visited[e_j[c_edge[t]]] = True
+        # α ascending, cos α equal to 1e-12 counting as a tie (stable: the longer first)
+        for t in range(1, c):
+            ke = c_edge[t]
+            kc = c_cos[t]
+            kr = c_rank[t]
+            q = t - 1
+            while q >= 0 and c_rank[q] > kr:
+                c_edge[q + 1] = c_edge[q]
+                c_cos[q + 1] = c_cos[q]
+                c_rank[q + 1] = c_rank[q]
+                q -= 1
+            c_edge[q + 1] = ke
+            c_cos[q + 1] = kc
+            c_rank[q + 1] = kr
+        # pruning (Fig. 14b): each candidate still alive is kept and removes the
+        # alive ones within φ_max of it; with regrow, those farther are released.
+        for t in range(c):
+            alive[t] = True
+        parent_node = node_of_point[i]
+        for t in range(c):
+            if not alive[t]:
+                continue
+            el = c_edge[t]
+            if c > 1:
+                lx = e_u[el, 0]
+                ly = e_u[el, 1]
+                lz = e_u[el, 2]
+                for q in range(c):
+                    if alive[q]:
+                        eq = c_edge[q]
+                        if lx * e_u[eq, 0] + ly * e_u[eq, 1] + lz * e_u[eq, 2] > cos_p:
+                            alive[q] = False
+                            if regrow and e_len[eq] > e_len[el]:
+                                visited[e_j[eq]] = False
+            # keep t: a new node, pushed with key -cos α
+            j = e_j[el]
+            node_of_point[j] = nodes
+            point_of_node[nodes] = j
+            parent[nodes] = parent_node
+            node_cos[nodes] = c_cos[t]
+            nodes += 1
+            key = -min(c_cos[t], 1.0)
+            pos = hs
+            hs += 1
+            while pos > 0:
+                up = (pos - 1) // 2
+                if key < h_key[up] or (key == h_key[up] and counter < h_cnt[up]):
+                    h_key[pos] = h_key[up]
+                    h_cnt[pos] = h_cnt[up]
+                    h_edge[pos] = h_edge[up]
+                    pos = up
+                else:
+                    break
+            h_key[pos] = key
+            h_cnt[pos] = counter
+            h_edge[pos] = el
+            counter += 1
+    return point_of_node, parent, node_cos, nodes, visited
 
 
 def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start: int, end: int,
@@ -104,9 +276,17 @@ def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start
 
     ``points`` (n, 3) candidate points, ``adjacency`` the CSR graph of
     :func:`~.graph.build_graph`, ``directions`` (n, 3) unit vectors u_j from
-    :func:`~.direction.direction_field`.  The inner work per popped segment
-    is vectorised over the neighbours of p_i; β_j does not depend on the
-    parent segment and is computed once per directed edge.  Pure function.
+    :func:`~.direction.direction_field`.  Pure function; the loop is a
+    compiled kernel (:mod:`sylva.core.jit`).  β_j does not depend on the
+    parent segment and is tested once per directed edge.
+
+    Q is keyed by α/α_max in the paper; the kernel keys it by −cos α, the
+    same order (arccos is decreasing) without an arccos per push.  Ties go
+    first in, first out (cos α ≥ 1 is clamped to 1, so collinear segments
+    tie); candidates are sorted by α ascending with cos α equal to 1e-12
+    counting as a tie, broken by the longer segment (a straight run then
+    advances by up to r_p instead of stalling among points its predecessor
+    already visited).  Dot products are evaluated as (x·x' + y·y') + z·z'.
 
     ``regrow_pruned`` (Sylva, not in the paper): a pruned candidate lying
     *farther* from p_i than the kept child that pruned it is not left
@@ -118,81 +298,39 @@ def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start
     candidates nearer than the kept child lie along its segment and stay
     visited, as in the paper.  ``regrow_pruned=False`` is Algorithm 2 verbatim.
     """
-    points = np.asarray(points, dtype=np.float64)
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    directions = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
     n = len(points)
-    indptr = adjacency.indptr
-    indices = adjacency.indices.astype(np.int64)
-    rows = np.repeat(np.arange(n), np.diff(indptr))
-    vec = points[indices] - points[rows]
-    length = np.linalg.norm(vec, axis=1)
-    # Within each row, neighbours by decreasing distance: a stable sort on α
-    # then breaks ties by the longer segment.
-    order = np.lexsort((-length, rows))
-    indices, vec, length = indices[order], vec[order], length[order]
-    good = length > 1e-12
-    unit = np.zeros_like(vec)
-    unit[good] = vec[good] / length[good, None]
-    cos_a = np.cos(np.radians(alpha_max_deg))
-    cos_b = np.cos(np.radians(beta_max_deg))
-    cos_p = np.cos(np.radians(phi_max_deg))
-    beta_ok = good & ((unit * directions[indices]).sum(axis=1) > cos_b)   # β_j < β_max
-    # β_j does not depend on the parent segment: drop the failing edges once.
-    indices, unit, length = indices[beta_ok], unit[beta_ok], length[beta_ok]
-    indptr = np.r_[0, np.cumsum(np.bincount(rows[order][beta_ok], minlength=n))]
+    if len(directions) != n or adjacency.shape != (n, n):
+        raise InputError(f"greedy_skeleton: {n} points, {len(directions)} directions and a "
+                         f"{adjacency.shape} adjacency do not match")
+    start, end = int(start), int(end)
+    first_seg = points[end] - points[start]
+    v0 = first_seg / np.linalg.norm(first_seg) if end != start else np.zeros(3)
+    pon, parent, cos_alpha, m, visited = _greedy_kernel(
+        points, np.asarray(adjacency.indptr, dtype=np.int64), np.asarray(adjacency.indices, dtype=np.int64),
+        directions, start, end, v0, float(np.cos(np.radians(alpha_max_deg))),
+        float(np.cos(np.radians(beta_max_deg))), float(np.cos(np.radians(phi_max_deg))), bool(regrow_pruned))
+    pon, parent, cos_alpha = pon[:m].copy(), parent[:m].copy(), cos_alpha[:m]
+    alpha = np.full(m, np.nan)
+    grown = slice(2 if end != start else 1, None)
+    alpha[grown] = np.degrees(np.arccos(np.minimum(cos_alpha[grown], 1.0)))   # cos > cos α_max > -1
+    return GreedyResult(pon, parent, visited, alpha)
 
-    visited = np.zeros(n, dtype=bool)
-    visited[start] = visited[end] = True
-    node_of_point = np.full(n, -1, dtype=np.int64)
-    point_of_node = [start]
-    parent = [-1]
-    alphas = [np.nan]
-    node_of_point[start] = 0
-    queue = []
-    if end != start:
-        point_of_node.append(end)
-        parent.append(0)
-        alphas.append(np.nan)
-        node_of_point[end] = 1
-        first_seg = points[end] - points[start]
-        queue.append((1.0, 0, end, first_seg / np.linalg.norm(first_seg)))
-    ptr = indptr.tolist()
-    counter = 1
-    while queue:
-        # Q holds (key = α/α_max, FIFO counter, point i, unit v_parent ending at i).
-        _, _, i, v_parent = heapq.heappop(queue)
-        a, b = ptr[i], ptr[i + 1]
-        js = indices[a:b]
-        u_all = unit[a:b]
-        cos_all = u_all @ v_parent
-        # α_j < α_max, β_j < β_max, not visited
-        cand = ((cos_all > cos_a) & ~visited[js]).nonzero()[0]
-        if cand.size == 0:
-            continue
-        visited[js[cand]] = True
-        parent_node = node_of_point[i]
-        if cand.size == 1:
-            kept = cand
-        else:
-            cand = cand[np.argsort(-np.rint(cos_all[cand] * 1e12), kind="stable")]  # α ascending
-            far = length[a:b][cand]
-            u = u_all[cand]
-            close = (u @ u.T) > cos_p                                    # φ_lm < φ_max
-            beyond = far[None, :] > far[:, None]                         # m farther than l
-            kept, released = _prune(close, beyond if regrow_pruned else None)
-            if released:
-                visited[js[cand[released]]] = False
-            kept = cand[kept]
-        alpha = np.degrees(np.arccos(np.minimum(cos_all[kept], 1.0))).tolist()   # cos > cos α_max > -1
-        for l, al in zip(kept.tolist(), alpha):
-            j = int(js[l])
-            node_of_point[j] = len(point_of_node)
-            point_of_node.append(j)
-            parent.append(parent_node)
-            alphas.append(al)
-            heapq.heappush(queue, (al / alpha_max_deg, counter, j, u_all[l]))
-            counter += 1
-    return GreedyResult(np.asarray(point_of_node, dtype=np.int64), np.asarray(parent, dtype=np.int64),
-                        visited, np.asarray(alphas))
+
+def load_kernels() -> float:
+    """Compile, or load from numba's cache, the kernels of :class:`GreedySkeleton`; returns the seconds taken.
+
+    The first tree reconstructed in a process does this anyway; a parent
+    process can call it once before starting its workers, so that on a
+    fresh install the workers find the cache written instead of each
+    compiling the kernels (see :mod:`sylva.core.jit`).
+    """
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    xyz = rng.random((200, 3)) * [3.0, 3.0, 8.0] + [0.0, 0.0, 2.0]
+    GreedySkeleton().reconstruct(TreePoints(0, xyz, 0.0))
+    return time.perf_counter() - t0
 
 
 def choose_end(points: np.ndarray, adjacency, start: int, direction: np.ndarray,

@@ -23,6 +23,10 @@ deterministic.
 
 Voxels marked ``keep`` (Sylva marks the ones holding added trunk points) are
 never deleted.
+
+The sub-iterations run as a compiled kernel (:mod:`sylva.core.jit`, numba)
+that tests simplicity on 26-bit neighbourhood masks by flood fill;
+:func:`is_simple` is the vectorised numpy form of the same test.
 """
 from __future__ import annotations
 
@@ -30,6 +34,8 @@ from itertools import product
 from typing import NamedTuple, Optional
 
 import numpy as np
+
+from ..jit import njit
 
 # --- the 3x3x3 neighbourhood --------------------------------------------
 _OFFSETS = np.array([o for o in product((-1, 0, 1), repeat=3) if o != (0, 0, 0)], dtype=np.int64)
@@ -125,6 +131,129 @@ def is_simple(config: np.ndarray) -> np.ndarray:
     return known[inv].astype(bool)
 
 
+# Bit masks of the same neighbourhoods for the kernel (bit q = _OFFSETS[q]).
+_ADJ26_MASK = np.array([sum(1 << int(q) for q in row if q != _SENTINEL) for row in _ADJ26], dtype=np.int64)
+_ADJ6_MASK = np.array([sum(1 << int(q) for q in row if q != _SENTINEL) for row in _ADJ6_N18], dtype=np.int64)
+_N18_MASK = np.int64(sum(1 << int(q) for q in _N18))
+_FACE_MASK = np.int64(sum(1 << int(q) for q in _FACE))
+_DIRECTIONS_ARR = np.array(_DIRECTIONS, dtype=np.int64)
+
+
+@njit
+def _thin_kernel(nbr, keep, directions, adj26, adj6, n18, faces, max_passes):
+    """The directional sub-iterations of :func:`thin_voxels` (see there); plain loops for numba.
+
+    ``nbr`` (v, 26) neighbour voxel ids (v = white), ``keep`` protected
+    voxels; simplicity as :func:`is_simple`, on 26-bit masks.  Returns the
+    black flags (v + 1, the last one the white sentinel) and the passes.
+    """
+    v = nbr.shape[0]
+    black = np.empty(v + 1, np.bool_)
+    for x in range(v):
+        black[x] = True
+    black[v] = False
+    ids = np.empty(v, np.int64)
+    go = np.empty(v, np.int64)
+    is_cand = np.zeros(v + 1, np.bool_)
+    passes = 0
+    while passes < max_passes:
+        passes += 1
+        deleted = 0
+        for dd in range(directions.shape[0]):
+            d = directions[dd]
+            m = 0
+            for x in range(v):
+                if black[x] and not keep[x] and not black[nbr[x, d]]:
+                    ids[m] = x
+                    m += 1
+            while m > 0:
+                # border voxels of direction d that are not end points and are simple
+                m2 = 0
+                for t in range(m):
+                    x = ids[t]
+                    if black[nbr[x, d]]:
+                        continue
+                    cfg = 0
+                    cnt = 0
+                    for q in range(26):
+                        if black[nbr[x, q]]:
+                            cfg |= 1 << q
+                            cnt += 1
+                    if cnt < 2:
+                        continue
+                    # black 26-neighbours: exactly one 26-connected component
+                    rem = cfg
+                    low = rem & -rem
+                    comp = low
+                    front = low
+                    while front != 0:
+                        p = 0
+                        while ((front >> p) & 1) == 0:
+                            p += 1
+                        front &= front - 1
+                        new = adj26[p] & rem & ~comp
+                        comp |= new
+                        front |= new
+                    if comp != cfg:
+                        continue
+                    # white 18-neighbours: exactly one 6-connected component holding a face
+                    rem = ~cfg & n18
+                    ncomp = 0
+                    while rem != 0 and ncomp < 2:
+                        low = rem & -rem
+                        comp = low
+                        front = low
+                        while front != 0:
+                            p = 0
+                            while ((front >> p) & 1) == 0:
+                                p += 1
+                            front &= front - 1
+                            new = adj6[p] & rem & ~comp
+                            comp |= new
+                            front |= new
+                        rem &= ~comp
+                        if comp & faces:
+                            ncomp += 1
+                    if ncomp != 1:
+                        continue
+                    ids[m2] = x
+                    m2 += 1
+                m = m2
+                if m == 0:
+                    break
+                # delete those without a simple neighbour of lower index (an
+                # independent set, as good as one after the other); re-test the rest
+                for t in range(m):
+                    is_cand[ids[t]] = True
+                m3 = 0
+                ngo = 0
+                for t in range(m):
+                    x = ids[t]
+                    lower = False
+                    for q in range(26):
+                        y = nbr[x, q]
+                        if y < x and is_cand[y]:
+                            lower = True
+                            break
+                    if lower:
+                        ids[m3] = x
+                        m3 += 1
+                    else:
+                        go[ngo] = x
+                        ngo += 1
+                for t in range(m3):
+                    is_cand[ids[t]] = False
+                for t in range(ngo):
+                    is_cand[go[t]] = False
+                    black[go[t]] = False
+                deleted += ngo
+                m = m3
+        if deleted == 0:
+            break
+    return black, passes
+
+
+
 class Thinned(NamedTuple):
     """Result of :func:`thin_voxels`."""
 
@@ -171,39 +300,7 @@ def thin_voxels(xyz: np.ndarray, voxel_m: float = 0.2, keep: Optional[np.ndarray
         pos = np.minimum(np.searchsorted(ukey, nkey), v - 1)
         nbr = np.where(ukey[pos] == nkey, pos, v)
 
-    black = np.ones(v + 1, dtype=bool)
-    black[v] = False
-    passes = 0
-    while passes < max_passes:
-        passes += 1
-        deleted = 0
-        for d in _DIRECTIONS:
-            # Border voxels of direction d: not protected, not end points, simple.
-            # Deleting simple voxels that are pairwise not 26-adjacent at once is
-            # the same as deleting them one after the other (each one's
-            # neighbourhood is untouched by the others), so every round deletes
-            # an independent set (lowest index among its simple neighbours) and
-            # re-tests the rest until no simple border voxel of direction d is left.
-            cfg = black[nbr]
-            ids = np.flatnonzero(black[:v] & ~vkeep & ~cfg[:, d] & (np.count_nonzero(cfg, axis=1) >= 2))
-            while len(ids):
-                cfg = black[nbr[ids]]
-                ok = ~cfg[:, d] & (np.count_nonzero(cfg, axis=1) >= 2)
-                ids, cfg = ids[ok], cfg[ok]
-                if len(ids) == 0:
-                    break
-                ids = ids[is_simple(cfg)]
-                if len(ids) == 0:
-                    break
-                is_cand = np.zeros(v + 1, dtype=bool)
-                is_cand[ids] = True
-                nb = nbr[ids]
-                lower = (is_cand[nb] & (nb < ids[:, None])).any(axis=1)
-                go = ids[~lower]
-                black[go] = False
-                deleted += len(go)
-                ids = ids[lower]
-        if deleted == 0:
-            break
+    black, passes = _thin_kernel(nbr, vkeep, _DIRECTIONS_ARR, _ADJ26_MASK, _ADJ6_MASK, _N18_MASK, _FACE_MASK,
+                                 int(max_passes))
     survivors = np.flatnonzero(black[:v])
     return Thinned(means[survivors], survivors, means, inv, vkeep, passes)
