@@ -33,9 +33,10 @@ from typing import Any, List
 import numpy as np
 
 from .cloud import PointCloud
-from .geometry import (branch_count, pipe_model_radii, simplify_skeleton, total_branch_length, tree_mesh,
-                       with_radii, wood_volume)
-from .leaves import LeafCards, NeedleClusters, grow_leaves
+from .geometry import (_branch_set, _continuation_cos_arrays, _continuation_from_cos, _forest, _radii_or_default,
+                       _split_branch_set, branch_count, pipe_model_radii, simplify_skeletons,
+                       total_branch_length, tree_meshes, with_radii, wood_volume)
+from .leaves import LeafCards, NeedleClusters, grow_leaves, grow_leaves_batch
 from .measure import TreeMetrics, estimate_dbh
 from .progress import CancelCheck, Progress, check, report
 from .qsm import cylinders_from_skeleton, measure_qsm
@@ -65,7 +66,11 @@ class ModelledTree:
     leaves: Any                   # LeafMesh (origin at the base) or None
     record: dict = field(default_factory=dict)
     qsm: Any = None               # sylva.core.qsm.QSM, tile-local metres (see qsm_tables)
+    branches: Any = None          # geometry.BranchSet of ``skeleton`` with its radii (reused by skeleton_table)
 
+
+#: Trees are meshed and leaved in batches of about this many skeleton nodes (a few MB of temporaries).
+_BATCH_NODES = 50_000
 
 #: Branch orders counted in the record's ``n_branches_order_<o>`` fields (the
 #: full counts are in ``branch_counts``, "order:count" pairs).
@@ -101,33 +106,86 @@ def dbh_radii(skeleton, dbh_m: float, options: ModelOptions = ModelOptions()) ->
     return pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2), trunk_radius_m=stem_r)
 
 
-def leaf_mesh(skeleton, kind: str, options: ModelOptions = ModelOptions(), seed: int = 0):
+def leaf_mesh(skeleton, kind: str, options: ModelOptions = ModelOptions(), seed: int = 0, branch_set=None):
     """Needle clusters or leaf cards (``kind`` "needles" / "broadleaf"; else None) on a skeleton with radii.
 
     Coarse levels of detail get fewer, larger cards: the crown's look at a fraction of the faces.
+    ``branch_set``: ``branches(skeleton)`` (no radii) when the caller has it already.
     """
+    method = _leaf_method(kind, options)
+    return None if method is None else grow_leaves(skeleton, method, seed=seed, branch_set=branch_set)
+
+
+def _leaf_method(kind: str, options: ModelOptions):
+    """The NeedleClusters / LeafCards of :func:`leaf_mesh` for ``kind`` (None for no leaves)."""
     scale = {0: 3.0, 1: 1.5}.get(options.lod, 1.0)
     if kind == "needles":
-        return grow_leaves(skeleton, NeedleClusters(clusters_per_tip=max(2, int(8 / scale)),
-                                                    cluster_length_m=0.3 * scale), seed=seed)
+        return NeedleClusters(clusters_per_tip=max(2, int(8 / scale)), cluster_length_m=0.3 * scale)
     if kind == "broadleaf":
-        return grow_leaves(skeleton, LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
-                                               leaf_length_m=0.1 * scale), seed=seed)
+        return LeafCards(shape=options.leaf_shape, leaves_per_tip=max(2, int(12 / scale ** 2)),
+                         leaf_length_m=0.1 * scale)
     return None
+
+
+def _branch_sets(skeletons, shifted, radii) -> list:
+    """Per tree the three branch decompositions its outputs use (see :func:`geometry.branches`), for all trees
+    in one vectorised pass over the forest of their skeletons.
+
+    ``(of the skeleton with radii, of the shifted skeleton with the mesh radii, of the shifted skeleton
+    without radii)`` for the records / QSM / skeleton table, the wood mesh and the leaves.  They differ only
+    where the shift rounds a bend cosine differently or a tie is broken by radius instead of index, so a
+    tree reuses the previous one when its continuation children are equal.
+    """
+    if not skeletons:
+        return []
+    nodes, parent, off = _forest(skeletons)
+    nodes_b, _, _ = _forest(shifted)
+    m = len(nodes)
+    r_a = np.concatenate([np.asarray(r, dtype=np.float64) for r in radii])
+    r_b = np.concatenate([_radii_or_default(sk, None) for sk in shifted])
+    child, par, cos_a = _continuation_cos_arrays(nodes, parent)
+    _, _, cos_b = _continuation_cos_arrays(nodes_b, parent)
+    cont_a = _continuation_from_cos(m, child, par, cos_a, r_a)
+    cont_b = cont_a if (np.array_equal(cos_a, cos_b) and np.array_equal(r_a, r_b)) else \
+        _continuation_from_cos(m, child, par, cos_b, r_b)
+    cont_c = _continuation_from_cos(m, child, par, cos_b, None)
+    bs_a = _split_branch_set(_branch_set(parent, cont_a), off)
+    out = [[bs, bs, bs] for bs in bs_a]
+    bounds = off.tolist()
+    for col, cont, earlier in ((1, cont_b, (0,)), (2, cont_c, (1, 0))):
+        differ = []
+        for t in range(len(skeletons)):
+            sl = slice(bounds[t], bounds[t + 1])
+            same = next((e for e in earlier if np.array_equal(cont[sl], [cont_a, cont_b][e][sl])), None)
+            if same is None:
+                differ.append(t)
+            else:
+                out[t][col] = out[t][same]
+        if differ:
+            for t, bs in zip(differ, _split_branch_set(_branch_set(parent, cont), off, differ)):
+                out[t][col] = bs
+    return [tuple(x) for x in out]
 
 
 def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
                 options: ModelOptions = ModelOptions(), progress: Progress = None,
                 cancelled: CancelCheck = None) -> List[ModelledTree]:
-    """Model every tree of ``labels`` (see the module docstring), in tree_id order."""
+    """Model every tree of ``labels`` (see the module docstring), in tree_id order.
+
+    Reconstruction and DBH go tree by tree; the rest runs batched over all trees of the
+    call (skeleton simplification, branch chains, wood meshes swept in one batch by
+    :func:`~sylva.core.geometry.tree_meshes`, leaves grown in one batch per leaf kind by
+    :func:`~sylva.core.leaves.grow_leaves_batch`), which gives every tree exactly what the
+    per-tree functions (:func:`~sylva.core.geometry.tree_mesh`, :func:`leaf_mesh`, ...) give it.
+    """
     local = cloud.local_xyz()
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
     row_of = {int(t): i for i, t in enumerate(metrics.tree_id)}
     ids, groups = _groups(np.asarray(labels))
-    out = []
+    work = []
     for k, (tree_id, idx) in enumerate(zip(ids, groups)):
         check(cancelled)
-        report(progress, k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
+        report(progress, 0.9 * k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
         i = row_of[int(tree_id)]
         xyz = local[idx]
         ground_z = float(np.median(xyz[:, 2] - height[idx]))
@@ -147,7 +205,13 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
             rec = reconstruct_tree(tree_pts, method)
         tree_h, crown_d = float(metrics.height[i]), float(metrics.crown_diameter[i])
         dbh, source = estimate_dbh(xyz, height[idx], tree_h, crown_d)
-        skeleton = simplify_skeleton(rec.skeleton, options.simplify_m) if options.simplify_m > 0 else rec.skeleton
+        work.append((int(tree_id), idx, i, ground_z, rec, dense_qsm, dbh, source))   # not xyz: memory
+    check(cancelled)
+    report(progress, 0.9, "skeletons, chains and QSMs")
+    raw = [w[4].skeleton for w in work]
+    simple = simplify_skeletons(raw, options.simplify_m) if options.simplify_m > 0 else raw
+    skeletons, shifted_all, radii_all, dbhs = [], [], [], []
+    for (tree_id, idx, i, ground_z, rec, dense_qsm, dbh, source), skeleton in zip(work, simple):
         if skeleton.radius.max() > 0:
             # Dense-scan methods measure radii from fitted cylinders (Yan et al. §4): keep them.
             radii = skeleton.radius
@@ -161,30 +225,38 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
         else:
             radii = dbh_radii(skeleton, dbh, options)
         skeleton = with_radii(skeleton, radii)
+        base = skeleton.nodes[skeleton.root].copy()
+        shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
+        skeletons.append(skeleton)
+        shifted_all.append(shifted)
+        radii_all.append(radii)
+        dbhs.append((dbh, source))
+    bsets = _branch_sets(skeletons, shifted_all, radii_all)
+    out, leaf_jobs = [], []
+    for (tree_id, idx, i, ground_z, rec, dense_qsm, _, _), skeleton, shifted, (dbh, source), \
+            (bset, _, bs_leaves) in zip(work, skeletons, shifted_all, dbhs, bsets):
+        xyz = local[idx]
         if dense_qsm is not None:
             qsm, qsm_method = dense_qsm, "bspline_cylinders"
             qsm.dbh_m, qsm.dbh_source = float(dbh), source
         else:
-            cyl, bpar = cylinders_from_skeleton(skeleton)
+            cyl, bpar = cylinders_from_skeleton(skeleton, branch_set=bset)
             qsm = measure_qsm(cyl, bpar, xyz, base_z=ground_z, tree_id=int(tree_id))
             qsm.dbh_m, qsm.dbh_source = float(dbh), source     # the record's DBH, not the pipe model's
             qsm_method = "skeleton_edges"
-        base = skeleton.nodes[skeleton.root].copy()
-        shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
-        wood = tree_mesh(shifted, lod=options.lod)
         kind = options.leaves
         if kind == "auto":
             kind = "needles" if is_conical(xyz, ground_z + metrics.crown_base_height[i]) else "broadleaf"
-        leaves = leaf_mesh(shifted, kind, options, seed=zlib.crc32(f"leaves-{int(tree_id)}".encode()))
+        leaf_jobs.append((kind, zlib.crc32(f"leaves-{int(tree_id)}".encode()), bs_leaves))
         noise = len(idx) < options.min_points
         quality = "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok")
         record = {
             "tree_id": int(tree_id),
             "base_x": 0.0, "base_y": 0.0, "base_z": 0.0,  # filled in CRS units below
             "dbh": float(dbh), "dbh_source": source,
-            "n_branches": int(branch_count(skeleton)),
-            "total_branch_length": float(total_branch_length(skeleton)),
-            "wood_volume": float(wood_volume(skeleton)),
+            "n_branches": int(branch_count(skeleton, branch_set=bset)),
+            "total_branch_length": float(total_branch_length(skeleton, branch_set=bset)),
+            "wood_volume": float(wood_volume(skeleton, branch_set=bset)),
             "method": rec.method,
             "visited_fraction": float(rec.visited_fraction),
             "quality": quality,
@@ -197,29 +269,104 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
             **{f"n_branches_order_{o}": int(qsm.branch_counts.get(o, 0)) for o in QSM_ORDERS},
             "branch_counts": ",".join(f"{o}:{c}" for o, c in sorted(qsm.branch_counts.items())),
         }
+        base = skeleton.nodes[skeleton.root].copy()
         crs_base = cloud.from_local(base[None, :])[0]
         record.update(base_x=float(crs_base[0]), base_y=float(crs_base[1]), base_z=float(crs_base[2]))
-        out.append(ModelledTree(int(tree_id), base, skeleton, wood, leaves, record, qsm))
+        out.append(ModelledTree(int(tree_id), base, skeleton, None, None, record, qsm, bset))
+    report(progress, 0.95, "meshes and leaves")
+    # batches of trees of about _BATCH_NODES skeleton nodes: the temporaries stay small on large tiles
+    sizes = np.array([len(sk) for sk in shifted_all], dtype=np.int64)
+    cuts = np.r_[0, np.flatnonzero(np.diff(np.cumsum(sizes) // _BATCH_NODES)) + 1, len(out)]
+    for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
+        check(cancelled)
+        for t, wood in zip(out[a:b], tree_meshes(shifted_all[a:b], lod=options.lod,
+                                                 branch_sets=[x[1] for x in bsets[a:b]])):
+            t.wood = wood
+        for kind in sorted({job[0] for job in leaf_jobs[a:b]}):
+            method = _leaf_method(kind, options)
+            if method is None:
+                continue
+            which = [k for k in range(a, b) if leaf_jobs[k][0] == kind]
+            grown = grow_leaves_batch([shifted_all[k] for k in which], method, [leaf_jobs[k][1] for k in which],
+                                      branch_sets=[leaf_jobs[k][2] for k in which])
+            for k, leaves in zip(which, grown):
+                out[k].leaves = leaves
     report(progress, 1.0, "trees modelled")
     return out
 
 
 def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
-    """One MultiLineStringZM per tree: each part a branch chain, M = radius (m), CRS coordinates."""
-    from .geometry import branches
-    from .table import VectorTable, multilinestring_zm_wkb
+    """One MultiLineStringZM per tree: each part a branch chain, M = radius (m), CRS coordinates.
 
-    wkb, ids, n_chains = [], [], []
+    The chains are those of :func:`~sylva.core.geometry.branches` (``ModelledTree.branches`` when
+    set); the chains of all trees are converted to CRS units in one call and encoded in one
+    vectorised pass (the same bytes as :func:`~sylva.core.table.multilinestring_zm_wkb`).
+    """
+    from .geometry import branches
+    from .table import VectorTable
+
+    ids, n_chains, radius, part_len = [], [], [], []
+    local = []
     for t in trees:
         sk = t.skeleton
-        chains = [c for c in branches(sk, sk.radius) if len(c) >= 2]
-        parts = [np.column_stack([cloud.from_local(sk.nodes[c]), sk.radius[c]]) for c in chains]
-        wkb.append(multilinestring_zm_wkb(parts))
+        bset = t.branches if t.branches is not None else branches(sk, sk.radius)
+        off = bset.offsets
+        lens = np.diff(off)
+        real = np.flatnonzero(lens >= 2)
+        if len(real) == len(lens):
+            nodes = bset.nodes
+        else:
+            keep = np.repeat(lens >= 2, lens)
+            nodes = bset.nodes[keep]
+        local.append(sk.nodes[nodes])
+        radius.append(sk.radius[nodes])
+        part_len.append(lens[real])
         ids.append(t.tree_id)
-        n_chains.append(len(parts))
+        n_chains.append(len(real))
+    n_chains = np.array(n_chains, dtype=np.int64)
+    if trees:
+        coords = np.column_stack([cloud.from_local(np.concatenate(local).reshape(-1, 3)), np.concatenate(radius)])
+        wkb = _multilinestring_zm_wkbs(coords, np.concatenate(part_len).astype(np.int64), n_chains)
+    else:
+        wkb = []
     return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
-                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": np.array(n_chains, dtype=np.int64)},
+                       {"tree_id": np.array(ids, dtype=np.int64), "n_chains": n_chains},
                        crs if crs is not None else cloud.crs, has_m=True)
+
+
+_WKB_HEADER = np.dtype([("order", "u1"), ("type", "<u4"), ("count", "<u4")])  # packed: 9 bytes
+
+
+def _multilinestring_zm_wkbs(coords: np.ndarray, part_len: np.ndarray, n_parts: np.ndarray) -> list:
+    """ISO WKB MultiLineString ZM per feature (little endian, types 3005 / 3002), vectorised.
+
+    ``coords`` (n, 4) x, y, z, m of all parts of all features in order; ``part_len`` (p,) points
+    per part; ``n_parts`` (f,) parts per feature.  Byte for byte what
+    :func:`sylva.core.table.multilinestring_zm_wkb` gives per feature.
+    """
+    nf, npart = len(n_parts), len(part_len)
+    feat_of_part = np.repeat(np.arange(nf), n_parts)
+    # items in buffer order: feature header, then its parts (header + coordinates)
+    part_item = feat_of_part + 1 + np.arange(npart)
+    feat_item = np.arange(nf) + np.r_[0, np.cumsum(n_parts)[:-1]]
+    size = np.empty(nf + npart, dtype=np.int64)
+    size[feat_item] = 9
+    size[part_item] = 9 + 32 * part_len
+    start = np.r_[0, np.cumsum(size)]
+    buf = np.empty(int(start[-1]), dtype=np.uint8)
+    hdr = np.empty(nf + npart, dtype=_WKB_HEADER)
+    hdr["order"] = 1
+    hdr["type"][feat_item], hdr["count"][feat_item] = 3005, n_parts
+    hdr["type"][part_item], hdr["count"][part_item] = 3002, part_len
+    buf[start[:-1, None] + np.arange(9)] = hdr.view(np.uint8).reshape(-1, 9)
+    if len(coords):
+        row_part = np.repeat(np.arange(npart), part_len)
+        row_local = np.arange(len(coords)) - np.repeat(np.r_[0, np.cumsum(part_len)[:-1]], part_len)
+        row_off = start[part_item][row_part] + 9 + 32 * row_local
+        buf[row_off[:, None] + np.arange(32)] = np.ascontiguousarray(coords, dtype="<f8").view(np.uint8).reshape(-1, 32)
+    ends = start[feat_item + 1 + n_parts].tolist()
+    begins = start[feat_item].tolist()
+    return [buf[a:b].tobytes() for a, b in zip(begins, ends)]
 
 
 def qsm_tables(trees: List[ModelledTree], cloud: PointCloud, crs=None):

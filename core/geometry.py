@@ -31,7 +31,11 @@ nodes), :func:`branch_count`, :func:`total_branch_length`.
 
 All loops over nodes are vectorised: per-depth-level passes for radii,
 pointer jumping for chains, and one segmented parallel prefix product of the
-double-reflection rotations for the frames of all tubes at once.
+double-reflection rotations for the frames of all tubes at once.  The batch
+forms :func:`branches_batch`, :func:`simplify_skeletons`,
+:func:`tree_mesh_arrays_batch` and :func:`tree_meshes` run the same passes over
+many trees joined into one forest (every step works per node, per chain or
+per polyline), so each tree gets exactly what the single-tree call gives it.
 """
 from __future__ import annotations
 
@@ -45,9 +49,11 @@ from .reconstruct.model import Skeleton
 
 __all__ = [
     "PipeModel", "Allometric", "assign_radii", "pipe_model_radii", "allometric_radii",
-    "with_radii", "BranchSet", "branches", "hermite_smooth", "rotation_minimizing_frames",
-    "sweep_tube", "LevelOfDetail", "LOD", "tree_mesh", "TreeMeshParts", "tree_mesh_arrays",
-    "wood_volume", "branch_count", "total_branch_length", "depth_levels",
+    "with_radii", "BranchSet", "branches", "branches_batch", "hermite_smooth", "rotation_minimizing_frames",
+    "sweep_tube", "LevelOfDetail", "LOD", "tree_mesh", "tree_meshes", "TreeMeshParts", "tree_mesh_arrays",
+    "tree_mesh_arrays_batch",
+    "wood_volume", "branch_count", "total_branch_length", "depth_levels", "simplify_skeleton",
+    "simplify_skeletons",
 ]
 
 _EPS = 1e-9
@@ -265,17 +271,36 @@ class BranchSet:
     attachment node (-1 for the trunk), ``node_branch[i]`` the branch that owns
     node ``i`` (the attachment node belongs to the parent branch), ``order[b]``
     the branching order (trunk 0).  Behaves as a sequence of the chains.
+
+    The chains are stored flat: ``nodes`` is their concatenation and
+    ``offsets`` (n_branches + 1,) the start of each (chain ``b`` is
+    ``nodes[offsets[b]:offsets[b + 1]]``), so batched consumers need no
+    Python loop; the list ``chains`` is built on first use.
     """
 
-    chains: List[np.ndarray]
+    nodes: np.ndarray
+    offsets: np.ndarray
     parent: np.ndarray
     attach: np.ndarray
     node_branch: np.ndarray
     order: np.ndarray
     continuation: np.ndarray  # per node: the child its chain continues into (-1 at tips)
 
+    @property
+    def chains(self) -> List[np.ndarray]:
+        c = self.__dict__.get("_chains")
+        if c is None:
+            nodes, off = self.nodes, self.offsets.tolist()
+            c = self.__dict__["_chains"] = [nodes[a:b] for a, b in zip(off[:-1], off[1:])]
+        return c
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Number of nodes of every chain."""
+        return np.diff(self.offsets)
+
     def __len__(self) -> int:
-        return len(self.chains)
+        return len(self.offsets) - 1
 
     def __getitem__(self, b):
         return self.chains[b]
@@ -284,26 +309,40 @@ class BranchSet:
         return iter(self.chains)
 
 
-def _continuation_child(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> np.ndarray:
-    """Per node, the child with the smallest bending angle (ties: the thicker one), or -1."""
-    m = len(skeleton)
-    cont = np.full(m, -1, dtype=np.int64)
-    child, par = skeleton.segments()
+def _continuation_cos(skeleton: Skeleton):
+    """(child, parent, cos) per segment: cosine of the bend from the incoming segment, rounded to 9 digits."""
+    return _continuation_cos_arrays(skeleton.nodes, skeleton.parent)
+
+
+def _continuation_cos_arrays(nodes: np.ndarray, parent: np.ndarray):
+    """:func:`_continuation_cos` of node / parent arrays (one tree or a forest of concatenated trees)."""
+    child = np.flatnonzero(parent >= 0)
+    par = parent[child]
     if len(child) == 0:
-        return cont
-    nodes = skeleton.nodes
-    gp = skeleton.parent[par]
+        return child, par, np.zeros(0)
+    gp = parent[par]
     incoming = np.where((gp >= 0)[:, None], nodes[par] - nodes[np.maximum(gp, 0)], [0.0, 0.0, 1.0])
     out = nodes[child] - nodes[par]
     cos = (incoming * out).sum(axis=1) / np.maximum(
         np.linalg.norm(incoming, axis=1) * np.linalg.norm(out, axis=1), 1e-12)
-    cos = np.round(cos, 9)  # exact ties are decided by radius, then by index
+    return child, par, np.round(cos, 9)  # exact ties are decided by radius, then by index
+
+
+def _continuation_from_cos(m: int, child, par, cos, radii: Optional[np.ndarray] = None) -> np.ndarray:
+    cont = np.full(m, -1, dtype=np.int64)
+    if len(child) == 0:
+        return cont
     r = radii[child] if radii is not None else np.zeros(len(child))
     order = np.lexsort((-child, r, cos, par))
     p_sorted = par[order]
     last = np.r_[np.flatnonzero(np.diff(p_sorted)), len(order) - 1]
     cont[p_sorted[last]] = child[order][last]
     return cont
+
+
+def _continuation_child(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> np.ndarray:
+    """Per node, the child with the smallest bending angle (ties: the thicker one), or -1."""
+    return _continuation_from_cos(len(skeleton), *_continuation_cos(skeleton), radii)
 
 
 def branches(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> BranchSet:
@@ -318,12 +357,69 @@ def branches(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> BranchSe
     Vectorised (pointer jumping to each chain's head).
     """
     skeleton = _check_skeleton(skeleton)
-    m = len(skeleton)
+    return _branch_set(skeleton.parent, _continuation_child(skeleton, radii))
+
+
+def branches_batch(skeletons, radii=None) -> List[BranchSet]:
+    """:func:`branches` of many skeletons (``radii`` None or one entry per skeleton), in one vectorised pass.
+
+    The skeletons are joined into one forest; every step works per node, per parent or per
+    chain, so each tree gets the :class:`BranchSet` of ``branches(skeleton, radii)``.
+    """
+    skeletons = [_check_skeleton(sk) for sk in skeletons]
+    if not skeletons:
+        return []
+    nodes, parent, off = _forest(skeletons)
+    r = None
+    if radii is not None and any(x is not None for x in radii):
+        r = np.concatenate([np.zeros(len(sk)) if x is None else np.asarray(x, dtype=np.float64).reshape(-1)
+                            for sk, x in zip(skeletons, radii)])
+    cont = _continuation_from_cos(len(nodes), *_continuation_cos_arrays(nodes, parent), r)
+    return _split_branch_set(_branch_set(parent, cont), off)
+
+
+def _forest(skeletons):
+    """(nodes, parent, node offsets) of skeletons joined into one forest (parents shifted, roots -1)."""
+    sizes = np.array([len(sk) for sk in skeletons], dtype=np.int64)
+    off = np.r_[0, np.cumsum(sizes)]
+    nodes = np.concatenate([sk.nodes for sk in skeletons]).reshape(-1, 3)
+    parent = np.concatenate([np.where(sk.parent >= 0, sk.parent + o, -1)
+                             for sk, o in zip(skeletons, off[:-1].tolist())]).astype(np.int64)
+    return nodes, parent, off
+
+
+def _split_branch_set(bs: BranchSet, node_off: np.ndarray, trees=None) -> List[BranchSet]:
+    """The per-tree BranchSets of a forest's BranchSet (trees = node ranges ``node_off``), or of ``trees`` only."""
+    nt = len(node_off) - 1
+    sizes = np.diff(node_off)
+    # first chain of every tree (its root starts one); empty trees own no chain
+    first = np.full(nt + 1, len(bs), dtype=np.int64)
+    nonempty = np.flatnonzero(sizes > 0)
+    first[nonempty] = bs.node_branch[node_off[nonempty]]
+    for t in range(nt - 1, -1, -1):      # an empty tree's range starts where the next tree's starts
+        if sizes[t] == 0:
+            first[t] = first[t + 1]
+    first_l, off_l, noff_l = first.tolist(), bs.offsets.tolist(), np.asarray(node_off).tolist()
+    out = []
+    for t in (range(nt) if trees is None else trees):
+        b0, b1 = first_l[t], first_l[t + 1]
+        n0, n1 = noff_l[t], noff_l[t + 1]
+        c0, c1 = off_l[b0], off_l[b1]
+        bpar = bs.parent[b0:b1]
+        att = bs.attach[b0:b1]
+        cont = bs.continuation[n0:n1]
+        out.append(BranchSet(bs.nodes[c0:c1] - n0, bs.offsets[b0:b1 + 1] - c0, np.where(bpar >= 0, bpar - b0, -1),
+                             np.where(att >= 0, att - n0, -1), bs.node_branch[n0:n1] - b0, bs.order[b0:b1],
+                             np.where(cont >= 0, cont - n0, -1)))
+    return out
+
+
+def _branch_set(parent: np.ndarray, cont: np.ndarray) -> BranchSet:
+    """The :class:`BranchSet` of a tree given each node's continuation child (see :func:`branches`)."""
+    m = len(parent)
     if m == 0:
         e = np.zeros(0, dtype=np.int64)
-        return BranchSet([], e, e, e, e, e)
-    parent = skeleton.parent
-    cont = _continuation_child(skeleton, radii)
+        return BranchSet(e, np.zeros(1, dtype=np.int64), e, e, e, e, e)
     idx = np.arange(m)
     is_start = parent < 0
     is_start[~is_start] = cont[parent[~is_start]] != idx[~is_start]
@@ -345,11 +441,8 @@ def branches(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> BranchSe
     full[full_off[:-1][has == 1]] = attach[has == 1]
     local = np.arange(m) - np.r_[0, np.cumsum(counts)][:-1][node_branch[order]]
     full[full_off[node_branch[order]] + has[node_branch[order]] + local] = order
-    chains = np.split(full, full_off[1:-1])
-    border = np.zeros(len(starts), dtype=np.int64)
-    for b in range(1, len(starts)):  # parents precede children
-        border[b] = border[bparent[b]] + 1
-    return BranchSet(chains, bparent.astype(np.int64), attach.astype(np.int64),
+    border = _depth(bparent.astype(np.int64))   # parents precede children: order = depth in the branch tree
+    return BranchSet(full, full_off.astype(np.int64), bparent.astype(np.int64), attach.astype(np.int64),
                      node_branch.astype(np.int64), border, cont)
 
 
@@ -748,7 +841,7 @@ class TreeMeshParts:
 
 
 def tree_mesh_arrays(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
-                     radii: Optional[np.ndarray] = None) -> TreeMeshParts:
+                     radii: Optional[np.ndarray] = None, branch_set: Optional[BranchSet] = None) -> TreeMeshParts:
     """The wood of a tree as arrays: one closed generalised cylinder per branch.
 
     Radii come from ``radii``, else ``skeleton.radius`` if set, else the
@@ -758,53 +851,139 @@ def tree_mesh_arrays(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
     own radius (so it starts inside the parent tube) and ends in a cap at its
     tip.  Branches with a base radius under ``lod.min_radius_m`` (and all
     they carry) are pruned; the trunk is always kept.  All tubes are built in
-    one vectorised batch.
+    one vectorised batch.  ``branch_set`` may pass ``branches(skeleton, radii)``
+    when the caller has it already (it is not checked).
     """
+    return tree_mesh_arrays_batch([skeleton], lod, None if radii is None else [radii],
+                                  None if branch_set is None else [branch_set])[0]
+
+
+def _tree_polylines(skeleton: Skeleton, lod: LevelOfDetail, radii, branch_set):
+    """(points, radii, line lengths, branch set, kept branches) of the tubes of one tree, before smoothing."""
     skeleton = _check_skeleton(skeleton)
-    lod = _lod(lod)
     rad = _radii_or_default(skeleton, radii)
-    bset = branches(skeleton, rad)
+    bset = branch_set if branch_set is not None else branches(skeleton, rad)
     nb = len(bset)
     if nb == 0:
-        e = np.zeros(0, dtype=np.int64)
-        return TreeMeshParts(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), e, bset, np.zeros(0, bool))
-    lengths = np.array([len(c) for c in bset.chains])
-    idx = np.concatenate(bset.chains)
-    offsets = np.r_[0, np.cumsum(lengths)]
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), bset, np.zeros(0, bool)
+    offsets = bset.offsets
+    lengths = np.diff(offsets)
+    idx = bset.nodes
     pts = skeleton.nodes[idx]
-    r = rad[idx].copy()
+    r = rad[idx]
     side = bset.attach >= 0
     # a side branch starts with its own (child) radius at the attachment node
     r[offsets[:-1][side & (lengths > 1)]] = r[offsets[:-1][side & (lengths > 1)] + 1]
     base_r = r[offsets[:-1]]
     keep = base_r >= lod.min_radius_m
     keep[0] = True
-    for b in np.flatnonzero(side):            # a pruned branch prunes all it carries
-        if keep[b] and not keep[bset.parent[b]]:
-            keep[b] = False
-    sel = np.flatnonzero(keep)
-    if len(sel) < nb:
+    # a pruned branch prunes all it carries: AND along the path to the trunk (pointer jumping)
+    anc = bset.parent.copy()
+    live = np.flatnonzero(anc >= 0)
+    while len(live):
+        keep[live] &= keep[anc[live]]
+        anc[live] = anc[anc[live]]
+        live = live[anc[live] >= 0]
+    if not keep.all():
         take = keep[np.repeat(np.arange(nb), lengths)]
         pts, r = pts[take], r[take]
-        offsets = np.r_[0, np.cumsum(lengths[sel])]
+        lengths = lengths[keep]
+    return pts, r, lengths, bset, keep
+
+
+def tree_mesh_arrays_batch(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=None,
+                           branch_sets=None) -> List[TreeMeshParts]:
+    """:func:`tree_mesh_arrays` of many trees, with the tubes of all of them swept in one batch.
+
+    ``radii`` and ``branch_sets`` are None or one entry (array or None) per skeleton.  Every
+    step of the sweep works point by point along each polyline, so each tree gets exactly the
+    arrays (same values, vertex and face order) a call for it alone gives.
+    """
+    lod = _lod(lod)
+    skeletons = list(skeletons)
+    nt = len(skeletons)
+    radii = [None] * nt if radii is None else list(radii)
+    branch_sets = [None] * nt if branch_sets is None else list(branch_sets)
+    prep = [_tree_polylines(sk, lod, r, bs) for sk, r, bs in zip(skeletons, radii, branch_sets)]
+    lines_per_tree = np.array([len(p[2]) for p in prep], dtype=np.int64)
+    if lines_per_tree.sum() == 0:
+        e = np.zeros(0, dtype=np.int64)
+        return [TreeMeshParts(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), e, p[3], p[4]) for p in prep]
+    pts = np.concatenate([p[0] for p in prep])
+    r = np.concatenate([p[1] for p in prep])
+    offsets = np.r_[0, np.cumsum(np.concatenate([p[2] for p in prep]))].astype(np.int64)
     pts, r, offsets, _ = _dedupe(pts, r, offsets)
     pts, r, offsets = _hermite_batch(pts, r, offsets, lod.samples_per_segment)
     verts, faces, face_line = _tube_batch(pts, r, offsets, lod.sides, cap=True)
-    return TreeMeshParts(verts, faces, sel[face_line], bset, keep)
+    if nt == 1:
+        groups = [(verts, faces, face_line)]
+    else:
+        groups = _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, lod.sides)
+    out = []
+    for (v, f, fl), (_, _, _, bset, keep) in zip(groups, prep):
+        out.append(TreeMeshParts(v, f, np.flatnonzero(keep)[fl], bset, keep))
+    return out
+
+
+def _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, sides):
+    """Per tree (vertices, faces, face line within the tree) of a :func:`_tube_batch` over many trees.
+
+    Reorders the vertices into the layout a batch of that tree alone has (ring corner ``j`` of
+    point ``i`` at ``j * n + i``, then the first caps, then the last caps) and keeps the faces
+    in their batch order, which is the order of the tree alone.
+    """
+    nt = len(lines_per_tree)
+    line_off = np.r_[0, np.cumsum(lines_per_tree)]
+    n = int(offsets[-1])
+    k = np.diff(offsets)
+    capped = k >= 2
+    nb = int(capped.sum())
+    cap_rank = np.cumsum(capped) - capped            # index of each capped line among the capped lines
+    pt_off = offsets[line_off]                       # points of tree t: pt_off[t] .. pt_off[t + 1]
+    cap_off = np.r_[0, np.cumsum(capped)][line_off]  # capped lines of tree t: cap_off[t] .. cap_off[t + 1]
+    n_t = np.diff(pt_off)
+    c_t = np.diff(cap_off)
+    v_t = n_t * sides + 2 * c_t
+    v_off = np.r_[0, np.cumsum(v_t)]
+    # new position of every batch vertex
+    new = np.empty(len(verts), dtype=np.int64)
+    point = np.arange(n)
+    tree_of_point = np.repeat(np.arange(nt), n_t)
+    local = point - pt_off[tree_of_point]
+    j = np.arange(sides)[:, None]
+    new[(j * n + point).ravel()] = (v_off[tree_of_point] + j * n_t[tree_of_point] + local).ravel()
+    caps = np.flatnonzero(capped)
+    tree_of_cap = np.repeat(np.arange(nt), c_t)
+    cap_local = cap_rank[caps] - cap_off[tree_of_cap]
+    base = v_off[tree_of_cap] + n_t[tree_of_cap] * sides
+    new[n * sides + np.arange(nb)] = base + cap_local
+    new[n * sides + nb + np.arange(nb)] = base + c_t[tree_of_cap] + cap_local
+    out_v = np.empty_like(verts)
+    out_v[new] = verts
+    tree_of_line = np.repeat(np.arange(nt), lines_per_tree)
+    face_tree = tree_of_line[face_line]
+    order = np.argsort(face_tree, kind="stable")
+    f_off = np.r_[0, np.cumsum(np.bincount(face_tree, minlength=nt))]
+    out_f = new[faces[order]] - v_off[face_tree[order]][:, None]
+    out_l = face_line[order] - line_off[face_tree[order]]
+    vb, fb = v_off.tolist(), f_off.tolist()
+    return [(out_v[vb[t]:vb[t + 1]], out_f[fb[t]:fb[t + 1]], out_l[fb[t]:fb[t + 1]]) for t in range(nt)]
 
 
 def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
-              radii: Optional[np.ndarray] = None, per_branch: bool = False):
+              radii: Optional[np.ndarray] = None, per_branch: bool = False,
+              branch_set: Optional[BranchSet] = None):
     """The wood of a tree as a :class:`trimesh.Trimesh` (see :func:`tree_mesh_arrays`).
 
     One mesh holding all branch tubes (each tube is closed; they overlap at
     the joints and are not boolean-merged), built once with ``process=False``;
     ``mesh.metadata["face_branch"]`` gives the branch of each face.  With
     ``per_branch=True`` returns a list of one watertight mesh per meshed branch.
+    ``branch_set``: see :func:`tree_mesh_arrays`.
     """
     import trimesh
 
-    parts = tree_mesh_arrays(skeleton, lod, radii)
+    parts = tree_mesh_arrays(skeleton, lod, radii, branch_set)
     if not per_branch:
         mesh = trimesh.Trimesh(parts.vertices, parts.faces, process=False)
         mesh.metadata["face_branch"] = parts.face_branch
@@ -819,16 +998,33 @@ def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
     return out
 
 
+def tree_meshes(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=None, branch_sets=None) -> list:
+    """:func:`tree_mesh` of many trees (one :class:`trimesh.Trimesh` each), the tubes swept in one batch.
+
+    The same meshes as one :func:`tree_mesh` call per tree (see :func:`tree_mesh_arrays_batch`).
+    """
+    import trimesh
+
+    out = []
+    for parts in tree_mesh_arrays_batch(skeletons, lod, radii, branch_sets):
+        mesh = trimesh.Trimesh(parts.vertices, parts.faces, process=False)
+        mesh.metadata["face_branch"] = parts.face_branch
+        out.append(mesh)
+    return out
+
+
 # --------------------------------------------------------------------------- measurements
 
-def wood_volume(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> float:
+def wood_volume(skeleton: Skeleton, radii: Optional[np.ndarray] = None,
+                branch_set: Optional[BranchSet] = None) -> float:
     """Wood volume in m³: the sum of truncated cones (frusta) between nodes.
 
     ``V = pi h (r1^2 + r1 r2 + r2^2) / 3`` per segment, with the node radii of
     ``radii`` (default ``skeleton.radius``).  As in :func:`tree_mesh`, a side
     branch's first segment starts with the branch's own radius, not the
     (thicker) radius of the node it leaves; the overlap of a side branch with
-    its parent near the joint is not subtracted.
+    its parent near the joint is not subtracted.  ``branch_set`` may pass
+    ``branches(skeleton, radii)`` when the caller has it already.
     """
     skeleton = _check_skeleton(skeleton)
     rad = skeleton.radius if radii is None else _radii_or_default(skeleton, radii)
@@ -836,7 +1032,7 @@ def wood_volume(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> float
     if len(child) == 0:
         return 0.0
     h = np.linalg.norm(skeleton.nodes[child] - skeleton.nodes[par], axis=1)
-    cont = _continuation_child(skeleton, rad)
+    cont = branch_set.continuation if branch_set is not None else _continuation_child(skeleton, rad)
     r2 = rad[child]
     r1 = np.where(cont[par] == child, rad[par], r2)
     return float((np.pi * h * (r1 * r1 + r1 * r2 + r2 * r2) / 3.0).sum())
@@ -846,23 +1042,34 @@ def _stored_radii(skeleton: Skeleton) -> Optional[np.ndarray]:
     return skeleton.radius if len(skeleton) and np.any(skeleton.radius > 0) else None
 
 
-def branch_count(skeleton: Skeleton, include_stem: bool = False) -> int:
-    """Number of branches (chains of :func:`branches`); the stem is not counted unless asked."""
-    n = len(branches(skeleton, _stored_radii(skeleton))) if len(skeleton) else 0
+def branch_count(skeleton: Skeleton, include_stem: bool = False, branch_set: Optional[BranchSet] = None) -> int:
+    """Number of branches (chains of :func:`branches`); the stem is not counted unless asked.
+
+    ``branch_set`` may pass ``branches(skeleton, skeleton.radius)`` when the caller has it already.
+    """
+    if not len(skeleton):
+        n = 0
+    else:
+        n = len(branch_set if branch_set is not None else branches(skeleton, _stored_radii(skeleton)))
     if n == 0:
         return 0
     return n if include_stem else n - 1
 
 
-def total_branch_length(skeleton: Skeleton, include_stem: bool = False) -> float:
-    """Summed length in metres of all branches (the stem chain left out unless asked)."""
+def total_branch_length(skeleton: Skeleton, include_stem: bool = False,
+                        branch_set: Optional[BranchSet] = None) -> float:
+    """Summed length in metres of all branches (the stem chain left out unless asked).
+
+    ``branch_set`` may pass ``branches(skeleton, skeleton.radius)`` when the caller has it already.
+    """
     skeleton = _check_skeleton(skeleton)
     if len(skeleton) < 2:
         return 0.0
     total = skeleton.length()
     if include_stem:
         return total
-    stem = branches(skeleton, _stored_radii(skeleton)).chains[0]
+    bset = branch_set if branch_set is not None else branches(skeleton, _stored_radii(skeleton))
+    stem = bset.nodes[bset.offsets[0]:bset.offsets[1]]
     return float(total - np.linalg.norm(np.diff(skeleton.nodes[stem], axis=0), axis=1).sum())
 
 
@@ -877,18 +1084,36 @@ def simplify_skeleton(skeleton: Skeleton, tolerance_m: float = 0.05, max_passes:
     parity), so the tolerance holds against the nodes kept; vectorised per pass.
     Radii, when present, are carried by the kept nodes.
     """
-    skeleton = _check_skeleton(skeleton)
-    nodes, parent = skeleton.nodes, skeleton.parent
-    radius, added = skeleton.radius, skeleton.is_added
+    return simplify_skeletons([skeleton], tolerance_m, max_passes)[0]
+
+
+def simplify_skeletons(skeletons, tolerance_m: float = 0.05, max_passes: int = 8) -> List[Skeleton]:
+    """:func:`simplify_skeleton` of many skeletons, each pass vectorised over all of them at once.
+
+    Every tree keeps its own stopping rule (it stops when it has fewer than three nodes or a
+    pass after the first drops nothing), so each result equals a call for that tree alone.
+    """
+    skeletons = [_check_skeleton(sk) for sk in skeletons]
+    nt = len(skeletons)
+    if nt == 0:
+        return []
+    nodes, parent, off = _forest(skeletons)
+    sizes = np.diff(off)
+    radius = np.concatenate([sk.radius for sk in skeletons])
+    added = np.concatenate([sk.is_added for sk in skeletons])
+    tree = np.repeat(np.arange(nt), sizes)
+    active = np.ones(nt, dtype=bool)
     for k in range(max_passes):
-        m = len(nodes)
-        if m < 3:
+        m_t = np.bincount(tree, minlength=nt)
+        active &= m_t >= 3
+        if not active.any():
             break
+        m = len(nodes)
         kids = np.bincount(parent[parent >= 0], minlength=m)
         only_child = np.full(m, -1, dtype=np.int64)
         has_parent = np.flatnonzero(parent >= 0)
         only_child[parent[has_parent]] = has_parent  # valid where kids == 1
-        cand = np.flatnonzero((kids == 1) & (parent >= 0))
+        cand = np.flatnonzero((kids == 1) & (parent >= 0) & active[tree])
         depth = _depth(parent)
         cand = cand[depth[cand] % 2 == k % 2]
         if len(cand) == 0:
@@ -899,9 +1124,13 @@ def simplify_skeleton(skeleton: Skeleton, tolerance_m: float = 0.05, max_passes:
         t = np.clip(((nodes[cand] - p) * seg).sum(axis=1) / length2, 0.0, 1.0)
         dist = np.linalg.norm(nodes[cand] - (p + t[:, None] * seg), axis=1)
         drop = cand[dist <= tolerance_m]
+        if k >= 1:   # a tree with candidates whose pass drops nothing stops
+            tried = np.zeros(nt, dtype=bool)
+            tried[tree[cand]] = True
+            dropped = np.zeros(nt, dtype=bool)
+            dropped[tree[drop]] = True
+            active &= ~(tried & ~dropped)
         if len(drop) == 0:
-            if k >= 1:
-                break
             continue
         new_parent = parent.copy()
         new_parent[only_child[drop]] = parent[drop]
@@ -910,5 +1139,11 @@ def simplify_skeleton(skeleton: Skeleton, tolerance_m: float = 0.05, max_passes:
         index = np.cumsum(keep) - 1
         kept_parent = new_parent[keep]
         parent = np.where(kept_parent >= 0, index[np.maximum(kept_parent, 0)], -1)
-        nodes, radius, added = nodes[keep], radius[keep], added[keep]
-    return Skeleton(nodes, parent, radius, added)
+        nodes, radius, added, tree = nodes[keep], radius[keep], added[keep], tree[keep]
+    off = np.r_[0, np.cumsum(np.bincount(tree, minlength=nt))].tolist()
+    out = []
+    for t in range(nt):
+        a, b = off[t], off[t + 1]
+        par = parent[a:b]
+        out.append(Skeleton(nodes[a:b], np.where(par >= 0, par - a, -1), radius[a:b], added[a:b]))
+    return out

@@ -20,7 +20,8 @@ needle spray (the usual conifer billboard).  Azimuths, insertion angles, roll
 and size get seeded random jitter.  Textures come from
 :func:`sylva.core.textures.leaf_texture` (drawn by Sylva, never copied).
 
-Everything is vectorised over all tips and leaves of a tree.  Cards are
+Everything is vectorised over all tips and leaves of a tree, or of many trees
+at once (:func:`grow_leaves_batch`, same result per tree).  Cards are
 single-sided quads: render them with a double-sided, alpha-masked material.
 Texture coordinates follow the OBJ/OpenGL convention (v = 0 at the petiole,
 the bottom row of the image; glTF writers flip v).
@@ -33,12 +34,12 @@ from typing import Optional, Union
 import numpy as np
 
 from .errors import InputError
-from .geometry import branches
+from .geometry import _cross, branches
 from .reconstruct.model import Skeleton
 from .textures import leaf_aspect, leaf_texture, _shape_name
 
 __all__ = ["PATTERNS", "GOLDEN_ANGLE_DEG", "phyllotaxis_azimuths", "LeafCards", "NeedleClusters",
-           "LeafMesh", "grow_leaves", "leaf_cards", "needle_clusters", "leaf_texture"]
+           "LeafMesh", "grow_leaves", "grow_leaves_batch", "leaf_cards", "needle_clusters", "leaf_texture"]
 
 #: The golden angle 180° (3 - sqrt 5) = 137.5077...°, the divergence of spiral phyllotaxis.
 GOLDEN_ANGLE_DEG = float(180.0 * (3.0 - np.sqrt(5.0)))
@@ -192,24 +193,22 @@ def _transport(v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _tip_sections(skeleton: Skeleton, tip_segments: int):
+def _tip_sections(skeleton: Skeleton, tip_segments: int, branch_set=None):
     """Node indices (t, K + 1) of the last K segments of every branch (padded at the start)."""
-    bset = branches(skeleton)
-    chains = [c for c in bset.chains if len(c) >= 2]
-    if not chains:
+    bset = branch_set if branch_set is not None else branches(skeleton)
+    off = bset.offsets
+    real = np.flatnonzero(np.diff(off) >= 2)
+    if len(real) == 0:
         return np.zeros((0, tip_segments + 1), dtype=np.int64)
-    lengths = np.array([len(c) for c in chains])
-    full = np.concatenate(chains)
-    ends = np.cumsum(lengths)
-    starts = ends - lengths
+    ends, starts = off[real + 1], off[real]
     k = np.arange(tip_segments + 1)[None, :]
     pos = ends[:, None] - 1 - (tip_segments - k)
     pos = np.maximum(pos, starts[:, None])
-    return full[pos]
+    return bset.nodes[pos]
 
 
 def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = LeafCards(),
-                seed: int = 0, radii: Optional[np.ndarray] = None) -> LeafMesh:
+                seed: int = 0, radii: Optional[np.ndarray] = None, branch_set=None) -> LeafMesh:
     """Leaf cards (or needle clusters) on the branch tips of ``skeleton``, Hu et al. 2017 §5.6.
 
     For every branch chain (see :func:`sylva.core.geometry.branches`) the
@@ -220,12 +219,32 @@ def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = L
     along the twig by minimal rotations (so bends do not twist the pattern).
     Distichous rows start horizontal; the other patterns start at a random
     azimuth per tip.  Leaves attach at the twig surface (``radii``, default
-    ``skeleton.radius``).  Deterministic for a given ``seed``.
+    ``skeleton.radius``).  Deterministic for a given ``seed``.  ``branch_set``
+    may pass ``branches(skeleton)`` (no radii) when the caller has it already.
     """
-    if not isinstance(skeleton, Skeleton):
-        raise InputError(f"expected a Skeleton, got {type(skeleton).__name__}")
+    return grow_leaves_batch([skeleton], method, [seed], None if radii is None else [radii],
+                             None if branch_set is None else [branch_set])[0]
+
+
+def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = LeafCards(), seeds=None,
+                      radii=None, branch_sets=None) -> list:
+    """:func:`grow_leaves` of many trees with one method, all tips computed in one vectorised pass.
+
+    ``seeds`` one seed per skeleton (default 0 each); ``radii`` and ``branch_sets`` None or one
+    entry (array or None) per skeleton.  Each tree draws its random numbers from its own
+    generator in the order a call for it alone does, and every other step works tip by tip,
+    so each tree gets exactly the :class:`LeafMesh` of ``grow_leaves(skeleton, method, seed)``.
+    """
+    skeletons = list(skeletons)
+    ntree = len(skeletons)
+    for skeleton in skeletons:
+        if not isinstance(skeleton, Skeleton):
+            raise InputError(f"expected a Skeleton, got {type(skeleton).__name__}")
     if not isinstance(method, (LeafCards, NeedleClusters)):
         raise InputError(f"unknown leaf method {method!r}: use LeafCards(...) or NeedleClusters(...)")
+    seeds = [0] * ntree if seeds is None else list(seeds)
+    radii = [None] * ntree if radii is None else list(radii)
+    branch_sets = [None] * ntree if branch_sets is None else list(branch_sets)
     needles = isinstance(method, NeedleClusters)
     per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
     length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
@@ -238,21 +257,45 @@ def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = L
         raise InputError("leaves: need leaves_per_tip >= 0, tip_segments >= 1 and positive leaf sizes "
                          f"(got {per_tip}, {ksegs}, {length_m} m, {width_m} m)")
     base_az, node_rank = phyllotaxis_azimuths(method.pattern, per_tip)
-    rad = skeleton.radius if radii is None else np.asarray(radii, dtype=np.float64).reshape(-1)
-    if len(rad) != len(skeleton):
-        raise InputError(f"leaves: {len(rad)} radii for {len(skeleton)} skeleton nodes")
-    rng = np.random.default_rng(seed)
-    sect = _tip_sections(skeleton, ksegs) if len(skeleton) else np.zeros((0, ksegs + 1), np.int64)
-    pts = skeleton.nodes[sect]                                   # (t, K+1, 3)
+    # tip sections of all trees; node indices made global over the concatenated skeletons
+    sects, nodes_all, rad_all = [], [], []
+    n_off = 0
+    for skeleton, r, bs in zip(skeletons, radii, branch_sets):
+        rad = skeleton.radius if r is None else np.asarray(r, dtype=np.float64).reshape(-1)
+        if len(rad) != len(skeleton):
+            raise InputError(f"leaves: {len(rad)} radii for {len(skeleton)} skeleton nodes")
+        sect = (_tip_sections(skeleton, ksegs, bs) if len(skeleton)
+                else np.zeros((0, ksegs + 1), np.int64))
+        sects.append(sect + n_off)
+        nodes_all.append(skeleton.nodes)
+        rad_all.append(rad)
+        n_off += len(skeleton)
+    nodes_all = np.concatenate(nodes_all) if ntree else np.zeros((0, 3))
+    rad_all = np.concatenate(rad_all) if ntree else np.zeros(0)
+    sect_all = np.concatenate(sects) if ntree else np.zeros((0, ksegs + 1), np.int64)
+    pts = nodes_all[sect_all]                                    # (t, K+1, 3)
     seg = pts[:, 1:] - pts[:, :-1]
     seglen = np.linalg.norm(seg, axis=2)                         # (t, K)
     total = seglen.sum(axis=1)
     live = total > 1e-9
-    sect, pts, seg, seglen, total = sect[live], pts[live], seg[live], seglen[live], total[live]
-    nt = len(sect)
+    tip_tree = np.repeat(np.arange(ntree), [len(x) for x in sects])[live]
+    nt_of = np.bincount(tip_tree, minlength=ntree)
+    sect_all, pts, seg, seglen, total = sect_all[live], pts[live], seg[live], seglen[live], total[live]
+    nt = len(sect_all)
     n_nodes = int(node_rank.max()) + 1 if per_tip else 0
     if nt == 0 or per_tip == 0:
-        return _empty(shape, needles)
+        return [_empty(shape, needles) for _ in range(ntree)]
+    # random draws, per tree from its own generator, always in the same order
+    draws = [[], [], [], [], []]
+    for t in np.flatnonzero(nt_of):
+        rng = np.random.default_rng(seeds[t])
+        n_t = int(nt_of[t])
+        draws[0].append(np.zeros(n_t) if method.pattern == "distichy" else rng.uniform(0.0, 360.0, n_t))
+        draws[1].append(rng.normal(0.0, method.azimuth_jitter_deg, (n_t, per_tip)))
+        draws[2].append(rng.normal(0.0, method.angle_jitter_deg, (n_t, per_tip)))
+        draws[3].append(rng.normal(0.0, method.roll_jitter_deg, (n_t, per_tip)))
+        draws[4].append(rng.standard_normal((n_t, per_tip)))
+    start, az_jit, ins_jit, roll, size_jit = (np.concatenate(d) for d in draws)
     # unit directions per segment; zero-length (padding) segments take the next real one
     d = seg / np.where(seglen > 0, seglen, 1.0)[..., None]
     for q in range(ksegs - 2, -1, -1):
@@ -274,26 +317,22 @@ def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = L
     twig = d[ti, q]                                                                  # (t, L, 3)
     r_ = ref[ti, q]
     r_ = _unit(r_ - (r_ * twig).sum(axis=2, keepdims=True) * twig)
-    s_ = np.cross(twig, r_)
+    s_ = _cross(twig, r_)
     # radii along the twig (linear between nodes)
-    rn = rad[sect]
+    rn = rad_all[sect_all]
     rad_at = rn[ti, q] + local * (rn[ti, q + 1] - rn[ti, q])
-    # random draws, always in the same order
-    start = (np.zeros(nt) if method.pattern == "distichy" else rng.uniform(0.0, 360.0, nt))
-    az = (start[:, None] + base_az[None, :]
-          + rng.normal(0.0, method.azimuth_jitter_deg, (nt, per_tip)))
-    ins = method.insertion_angle_deg + rng.normal(0.0, method.angle_jitter_deg, (nt, per_tip))
-    roll = rng.normal(0.0, method.roll_jitter_deg, (nt, per_tip))
-    scale = np.clip(1.0 + method.size_jitter * rng.standard_normal((nt, per_tip)), 0.5, 1.5)
+    az = start[:, None] + base_az[None, :] + az_jit
+    ins = method.insertion_angle_deg + ins_jit
+    scale = np.clip(1.0 + method.size_jitter * size_jit, 0.5, 1.5)
     phi = np.deg2rad(az)[..., None]
     out_dir = np.cos(phi) * r_ + np.sin(phi) * s_            # radial direction of the leaf
     wdir = -np.sin(phi) * r_ + np.cos(phi) * s_              # across the blade
     ia = np.deg2rad(ins)[..., None]
     axis = np.cos(ia) * twig + np.sin(ia) * out_dir
     ro = np.deg2rad(roll)[..., None]
-    wdir = np.cos(ro) * wdir + np.sin(ro) * np.cross(axis, wdir)
+    wdir = np.cos(ro) * wdir + np.sin(ro) * _cross(axis, wdir)
     if method.face_up > 0:
-        horiz = np.cross(axis, np.array([0.0, 0.0, 1.0]))
+        horiz = _cross(axis, np.array([0.0, 0.0, 1.0]))
         hn = np.linalg.norm(horiz, axis=2, keepdims=True)
         horiz = np.where(hn > 1e-6, horiz / np.where(hn > 0, hn, 1.0), wdir)
         horiz *= np.sign((horiz * wdir).sum(axis=2, keepdims=True) + 1e-12)
@@ -306,23 +345,35 @@ def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = L
     L = nt * per_tip
     base, axis, wdir, twig = (x.reshape(L, 3) for x in (base, axis, wdir, twig))
     length, half_w = length.reshape(L, 1), half_w.reshape(L, 1)
-    dirs = [wdir, np.cross(axis, wdir)] if method.crossed else [wdir]
-    verts, uvs, faces = [], [], []
-    nv = 0
+    dirs = [wdir, _cross(axis, wdir)] if method.crossed else [wdir]
+    tip_pt = base + length * axis
+    corners = [np.stack([base - half_w * w, base + half_w * w,
+                         tip_pt + half_w * w, tip_pt - half_w * w], axis=1) for w in dirs]     # (L, 4, 3)
+    az = az.reshape(L)
+    tips_local = sect_all[:, -1] - np.repeat(np.r_[0, np.cumsum([len(sk) for sk in skeletons])][:-1], nt_of)
     quad_uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    for w in dirs:
-        tip_pt = base + length * axis
-        corners = np.stack([base - half_w * w, base + half_w * w,
-                            tip_pt + half_w * w, tip_pt - half_w * w], axis=1)     # (L, 4, 3)
-        verts.append(corners.reshape(-1, 3))
-        uvs.append(np.tile(quad_uv, (L, 1)))
-        v0 = nv + 4 * np.arange(L)[:, None]
-        faces.append(np.concatenate([v0 + [0, 1, 2], v0 + [0, 2, 3]], axis=1).reshape(-1, 3))
-        nv += 4 * L
-    tips = np.repeat(sect[:, -1], per_tip)
-    return LeafMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int64), np.concatenate(uvs),
-                    shape, f"sylva_{'needles' if needles else 'leaf'}_{shape}", tips, base, axis, twig,
-                    az.reshape(L), np.tile(node_rank, nt), {"pattern": method.pattern})
+    material = f"sylva_{'needles' if needles else 'leaf'}_{shape}"
+    out = []
+    t_off = np.r_[0, np.cumsum(nt_of)].tolist()
+    for t in range(ntree):
+        a, b = t_off[t], t_off[t + 1]
+        if a == b:
+            out.append(_empty(shape, needles))
+            continue
+        la, lb = a * per_tip, b * per_tip
+        Lt = lb - la
+        verts, uvs, faces = [], [], []
+        nv = 0
+        for c in corners:
+            verts.append(c[la:lb].reshape(-1, 3))
+            uvs.append(np.tile(quad_uv, (Lt, 1)))
+            v0 = nv + 4 * np.arange(Lt)[:, None]
+            faces.append(np.concatenate([v0 + [0, 1, 2], v0 + [0, 2, 3]], axis=1).reshape(-1, 3))
+            nv += 4 * Lt
+        out.append(LeafMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int64), np.concatenate(uvs),
+                            shape, material, np.repeat(tips_local[a:b], per_tip), base[la:lb], axis[la:lb],
+                            twig[la:lb], az[la:lb], np.tile(node_rank, b - a), {"pattern": method.pattern}))
+    return out
 
 
 def _empty(shape: str, needles: bool) -> LeafMesh:

@@ -116,7 +116,7 @@ def cylinders_from_curves(curves: Sequence[np.ndarray], radii: Sequence[np.ndarr
                 length=np.concatenate(lens), radius=np.concatenate(rads))
 
 
-def cylinders_from_skeleton(skeleton, radii: Optional[np.ndarray] = None) -> tuple:
+def cylinders_from_skeleton(skeleton, radii: Optional[np.ndarray] = None, branch_set=None) -> tuple:
     """Cylinder table of a skeleton with radii: every skeleton edge one cylinder.
 
     For the methods without fitted cylinders (airborne skeletons with pipe-model
@@ -126,13 +126,14 @@ def cylinders_from_skeleton(skeleton, radii: Optional[np.ndarray] = None) -> tup
     the node's radius, and its parent cylinder is the edge ending at the parent
     node.  Vectorised; cylinders are grouped by branch, parents first.
     Returns ``(cylinders, branch_parent)`` as :func:`cylinders_from_curves`.
+    ``branch_set`` may pass ``branches(skeleton, radii)`` when the caller has it already.
     """
     from .geometry import branches
 
     r = np.asarray(skeleton.radius if radii is None else radii, dtype=np.float64)
     if len(skeleton) < 2:
         return cylinders_from_curves([], [], []), np.zeros(0, dtype=np.int64)
-    bs = branches(skeleton, r)
+    bs = branch_set if branch_set is not None else branches(skeleton, r)
     par = skeleton.parent
     node = np.flatnonzero(par >= 0)                       # one cylinder per non-root node
     nb = np.asarray(bs.node_branch, dtype=np.int64)
@@ -328,6 +329,25 @@ def refit_radii(points: np.ndarray, cyl: dict, min_points: int = 12, min_arc_deg
     return (out, good, shift) if return_shift else (out, good)
 
 
+def _branch_depth(bp: np.ndarray) -> np.ndarray:
+    """Depth of every branch in the branch tree (trunk 0), by pointer jumping when parents precede children."""
+    if not np.all(bp < np.arange(len(bp))):     # as the sequential rule order[b] = order[bp[b]] + 1 gives
+        order = np.zeros(len(bp), dtype=np.int64)
+        for b in range(len(bp)):
+            if bp[b] >= 0:
+                order[b] = order[bp[b]] + 1
+        return order
+    order = (bp >= 0).astype(np.int64)
+    nxt = bp.copy()
+    live = np.flatnonzero(nxt >= 0)
+    while len(live):
+        tgt = nxt[live]
+        order[live] += order[tgt]
+        nxt[live] = nxt[tgt]
+        live = live[nxt[live] >= 0]
+    return order
+
+
 def branch_table_arrays(cyl: dict, branch_parent: Sequence[int]) -> dict:
     """Per-branch columns from a cylinder table (see :data:`BRANCH_FIELDS`).
 
@@ -351,15 +371,14 @@ def branch_table_arrays(cyl: dict, branch_parent: Sequence[int]) -> dict:
     base_h = np.full(nb, np.nan)
     base_h[has] = cyl["start"][first[has], 2]
     angle = np.zeros(nb)
-    for b in np.flatnonzero(has):
-        p = cyl["parent"][first[b]]
-        if p >= 0:
-            c = float(np.clip(cyl["axis"][first[b]] @ cyl["axis"][p], -1, 1))
-            angle[b] = np.degrees(np.arccos(c))
-    order = np.zeros(nb, dtype=np.int64)
-    for b in range(nb):
-        if bp[b] >= 0:
-            order[b] = order[bp[b]] + 1
+    b = np.flatnonzero(has)
+    p = cyl["parent"][first[b]]
+    b, fc, p = b[p >= 0], first[b][p >= 0], p[p >= 0]
+    if len(b):
+        ax = np.asarray(cyl["axis"], dtype=np.float64)
+        c = np.matmul(ax[fc][:, None, :], ax[p][:, :, None])[:, 0, 0]
+        angle[b] = np.degrees(np.arccos(np.clip(c, -1, 1)))
+    order = _branch_depth(bp)
     return dict(id=np.arange(nb, dtype=np.int64), parent=bp, order=order, n_cylinders=ncyl.astype(np.int64),
                 length=length, base_diameter=base_d, volume=vol, angle_deg=angle, base_height=base_h)
 

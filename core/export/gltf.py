@@ -73,14 +73,68 @@ def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals, unit length (up for isolated/degenerate vertices)."""
     v = vertices.astype(np.float64)
     fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
+    # sum of the face normals at each corner, corner 0 of all faces first (as np.add.at per corner)
+    corner = faces.T.ravel()
+    n = np.empty_like(v)
+    for c in range(3):
+        n[:, c] = np.bincount(corner, weights=np.tile(fn[:, c], 3), minlength=len(v))
     length = np.linalg.norm(n, axis=1)
     bad = length < 1e-12
     n[bad] = (0.0, 0.0, 1.0)
     length[bad] = 1.0
     return (n / length[:, None]).astype(np.float32)
+
+
+def _compact(faces: np.ndarray, n_vertices: int):
+    """(used, faces') with ``used`` the sorted referenced vertex indices and ``faces'`` indexing them:
+    ``np.unique(faces, return_inverse=True)`` without the sort (a mask and a cumulative sum)."""
+    mask = np.zeros(n_vertices, dtype=bool)
+    mask[faces.ravel()] = True
+    used = np.flatnonzero(mask)
+    if len(used) == n_vertices:
+        return used, faces.reshape(-1, 3)
+    new = np.cumsum(mask) - 1
+    return used, new[faces].reshape(-1, 3)
+
+
+#: Vertex normals are computed for batches of meshes of about this many vertices.
+_BATCH_VERTICES = 1_000_000
+
+
+def _normals_and_bounds(positions: List[np.ndarray], faces: List[np.ndarray]):
+    """:func:`_unit_normals` and per-axis (min, max) of many float32 meshes in one vectorised pass.
+
+    The same numbers as one call per mesh: the face normals are summed per vertex in the same
+    order (corner 0 of every face of a mesh, then corner 1, then corner 2).
+    """
+    if not positions:
+        return [], [], []
+    nv = np.array([len(p) for p in positions], dtype=np.int64)
+    # bounded temporaries: batches of meshes of about _BATCH_VERTICES vertices
+    cuts = np.r_[0, np.flatnonzero(np.diff(np.cumsum(nv) // _BATCH_VERTICES)) + 1, len(positions)].tolist()
+    if len(cuts) == 2:
+        return _normals_and_bounds_batch(positions, faces, nv)
+    parts = [_normals_and_bounds_batch(positions[a:b], faces[a:b], nv[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
+    return ([n for p in parts for n in p[0]], np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]))
+
+
+def _normals_and_bounds_batch(positions: List[np.ndarray], faces: List[np.ndarray], nv: np.ndarray):
+    """One batch of :func:`_normals_and_bounds` (``nv`` the vertex count of every mesh)."""
+    nf = np.array([len(f) for f in faces], dtype=np.int64)
+    voff = np.r_[0, np.cumsum(nv)]
+    pos = np.concatenate(positions)
+    f = np.concatenate(faces) + np.repeat(voff[:-1], nf)[:, None]
+    normals = _unit_normals(pos, f)
+    starts = voff[:-1]
+    ok = nv > 0
+    lo = np.zeros((len(nv), 3), dtype=pos.dtype)
+    hi = np.zeros((len(nv), 3), dtype=pos.dtype)
+    if ok.any():
+        lo[ok] = np.minimum.reduceat(pos, starts[ok], axis=0)
+        hi[ok] = np.maximum.reduceat(pos, starts[ok], axis=0)
+    bounds = voff.tolist()
+    return [normals[a:b] for a, b in zip(bounds[:-1], bounds[1:])], lo, hi
 
 
 class _Builder:
@@ -101,17 +155,21 @@ class _Builder:
         self.views.append(v)
         return len(self.views) - 1
 
-    def accessor(self, array: np.ndarray, kind: str, target: Optional[int], minmax: bool = False) -> int:
+    def accessor(self, array: np.ndarray, kind: str, target: Optional[int], minmax: bool = False,
+                 bounds=None) -> int:
+        """An accessor + view of ``array``; with ``minmax`` its min/max, or ``bounds`` (min, max) given."""
         array = np.ascontiguousarray(array)
         ctype = {np.dtype(np.float32): _FLOAT, np.dtype(np.uint32): _UINT,
                  np.dtype(np.uint16): _USHORT}[array.dtype]
         count = len(array) if kind != "SCALAR" or array.ndim == 1 else array.size
         acc = {"bufferView": self.view(array.tobytes(), target), "componentType": ctype,
                "count": int(count), "type": kind}
-        if minmax:
+        if minmax and bounds is None:
             a = array.reshape(count, -1)
-            acc["min"] = [float(x) for x in a.min(axis=0)]
-            acc["max"] = [float(x) for x in a.max(axis=0)]
+            bounds = (a.min(axis=0), a.max(axis=0))
+        if bounds is not None:
+            acc["min"] = [float(x) for x in bounds[0]]
+            acc["max"] = [float(x) for x in bounds[1]]
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
@@ -193,12 +251,16 @@ def uses_billboard(model: TreeModel, content: str = "model") -> bool:
 
 def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = None,
               leaves: bool = True, texture_size: int = 256, metadata: bool = True,
-              extras: Optional[dict] = None, content: str = "model") -> bytes:
+              extras: Optional[dict] = None, content: str = "model", cache: Optional[dict] = None) -> bytes:
     """The GLB of ``models`` in the ENU frame of ``georef`` (see the module docstring).
 
     ``lod`` None writes the full wood; an int writes ``model.lods[lod]`` when the
     model has it (else the full wood); ``"coarsest"`` the lowest level it has.  ``leaves`` False leaves the leaf cards out.
     ``content`` "model" (default) or "billboard": the trees' billboards where they have one.
+    ``cache``: a dict shared by several calls on the same, unchanged models (a tile's GLB and its
+    tileset, :func:`write_glb` / :func:`~.tiles3d.write_tileset`): each tree's primitives (float32
+    positions, normals, bounds, indices) are then computed once per frame; the bytes are the same.
+    The dict keeps the models and these arrays alive: drop it after the exports.
     """
     if content not in CONTENTS:
         raise InputError(f"glTF export: content must be one of {', '.join(CONTENTS)}, got {content!r}")
@@ -210,60 +272,83 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
         "baseColorFactor": list(BARK_RGBA), "metallicFactor": 0.0, "roughnessFactor": 0.9}}]
     textures, images, leaf_material = [], [], {}
     meshes, nodes = [], [None]
+    # pass 1: every primitive's arrays; normals and bounds of all of them in one vectorised call
+    prim_parts = []
+    cached, todo = [], []
     for i, m in enumerate(models):
-        prims = []
         parts = []
         if uses_billboard(m, content):
             bv, bf, buv = m.billboard_arrays()
-            parts.append((_BILLBOARD, bv, bf, buv))
+            parts.append((_BILLBOARD, "billboard", bv, bf, buv))
         else:
-            wv, wf = m.wood_arrays(_pick_lod(m, lod))
+            wood_lod = _pick_lod(m, lod)
+            wv, wf = m.wood_arrays(wood_lod)
             if len(wf):
-                parts.append(("bark", wv, wf, None))
+                parts.append(("bark", ("bark", wood_lod), wv, wf, None))
             if leaves:
                 lv, lf, luv = m.leaf_arrays()
                 if len(lf):
-                    parts.append((m.leaves.texture, lv, lf, luv))
-        for kind, v, f, uv in parts:
+                    parts.append((m.leaves.texture, "leaves", lv, lf, luv))
+        for kind, tag, v, f, uv in parts:
+            key = (id(m), tag, jac[i].tobytes())
+            hit = cache.get(key) if cache is not None else None
+            if hit is not None and hit[0] is m:       # the very model (ids are reused once it is gone)
+                prim_parts.append((i, kind) + hit[1][:3])
+                cached.append(hit[1][3:])
+                continue
             # drop unreferenced vertices so min/max and counts describe what is drawn
-            used, inv = np.unique(f, return_inverse=True)
-            v, f = v[used], inv.reshape(-1, 3)
-            pos = (v @ jac[i].T).astype(np.float32)
-            attrs = {"POSITION": b.accessor(pos, "VEC3", _ARRAY_BUFFER, minmax=True),
-                     "NORMAL": b.accessor(_unit_normals(pos, f), "VEC3", _ARRAY_BUFFER)}
-            if uv is not None:
-                uv = uv[used]
-                tex = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
-                attrs["TEXCOORD_0"] = b.accessor(tex, "VEC2", _ARRAY_BUFFER)
-                if kind is _BILLBOARD:
-                    images.append({"name": f"billboard_{m.tree_id}", "mimeType": "image/png",
-                                   "bufferView": b.view(m.billboard.png())})
-                    textures.append({"sampler": 0, "source": len(images) - 1})
-                    materials.append({"name": f"billboard_{m.tree_id}", "alphaMode": "MASK", "alphaCutoff": 0.5,
-                                      "doubleSided": True, "pbrMetallicRoughness": {
-                                          "baseColorTexture": {"index": len(textures) - 1},
-                                          "metallicFactor": 0.0, "roughnessFactor": 0.9}})
-                    material = len(materials) - 1
-                elif kind not in leaf_material:
-                    png = leaf_png(kind, texture_size)
-                    images.append({"name": f"leaf_{kind}", "mimeType": "image/png", "bufferView": b.view(png)})
-                    textures.append({"sampler": 0, "source": len(images) - 1})
-                    materials.append({"name": f"leaves_{kind}", "alphaMode": "MASK", "alphaCutoff": 0.5,
-                                      "doubleSided": True, "pbrMetallicRoughness": {
-                                          "baseColorTexture": {"index": len(textures) - 1},
-                                          "metallicFactor": 0.0, "roughnessFactor": 0.8}})
-                    leaf_material[kind] = len(materials) - 1
-                if kind is not _BILLBOARD:
-                    material = leaf_material[kind]
-            else:
-                material = 0
-            prim = {"attributes": attrs, "indices": b.indices(f, len(pos)), "material": material, "mode": 4}
-            if metadata:
-                attrs["_FEATURE_ID_0"] = b.accessor(np.full(len(pos), i, np.float32), "SCALAR", _ARRAY_BUFFER)
-                prim["extensions"] = {"EXT_mesh_features": {"featureIds": [
-                    {"featureCount": len(models), "attribute": 0, "propertyTable": 0}]}}
-            prims.append(prim)
-        meshes.append({"name": m.name, "primitives": prims})
+            used, f = _compact(f, len(v))
+            pos = (v[used] @ jac[i].T).astype(np.float32)
+            prim_parts.append((i, kind, pos, f, None if uv is None else uv[used]))
+            cached.append(None)
+            todo.append((len(prim_parts) - 1, key, m))
+    new = _normals_and_bounds([prim_parts[k][2] for k, _, _ in todo], [prim_parts[k][3] for k, _, _ in todo])
+    for (k, key, m), normal, lo_k, hi_k in zip(todo, *new):
+        cached[k] = (normal, lo_k, hi_k)
+        if cache is not None:
+            cache[key] = (m, prim_parts[k][2:] + cached[k])
+    normals = [c[0] for c in cached]
+    lo = [c[1] for c in cached]
+    hi = [c[2] for c in cached]
+    # pass 2: buffer views and accessors, in file order
+    prims_of = [[] for _ in models]
+    for k, (i, kind, pos, f, uv) in enumerate(prim_parts):
+        m = models[i]
+        attrs = {"POSITION": b.accessor(pos, "VEC3", _ARRAY_BUFFER, bounds=(lo[k], hi[k])),
+                 "NORMAL": b.accessor(normals[k], "VEC3", _ARRAY_BUFFER)}
+        if uv is not None:
+            tex = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
+            attrs["TEXCOORD_0"] = b.accessor(tex, "VEC2", _ARRAY_BUFFER)
+            if kind is _BILLBOARD:
+                images.append({"name": f"billboard_{m.tree_id}", "mimeType": "image/png",
+                               "bufferView": b.view(m.billboard.png())})
+                textures.append({"sampler": 0, "source": len(images) - 1})
+                materials.append({"name": f"billboard_{m.tree_id}", "alphaMode": "MASK", "alphaCutoff": 0.5,
+                                  "doubleSided": True, "pbrMetallicRoughness": {
+                                      "baseColorTexture": {"index": len(textures) - 1},
+                                      "metallicFactor": 0.0, "roughnessFactor": 0.9}})
+                material = len(materials) - 1
+            elif kind not in leaf_material:
+                png = leaf_png(kind, texture_size)
+                images.append({"name": f"leaf_{kind}", "mimeType": "image/png", "bufferView": b.view(png)})
+                textures.append({"sampler": 0, "source": len(images) - 1})
+                materials.append({"name": f"leaves_{kind}", "alphaMode": "MASK", "alphaCutoff": 0.5,
+                                  "doubleSided": True, "pbrMetallicRoughness": {
+                                      "baseColorTexture": {"index": len(textures) - 1},
+                                      "metallicFactor": 0.0, "roughnessFactor": 0.8}})
+                leaf_material[kind] = len(materials) - 1
+            if kind is not _BILLBOARD:
+                material = leaf_material[kind]
+        else:
+            material = 0
+        prim = {"attributes": attrs, "indices": b.indices(f, len(pos)), "material": material, "mode": 4}
+        if metadata:
+            attrs["_FEATURE_ID_0"] = b.accessor(np.full(len(pos), i, np.float32), "SCALAR", _ARRAY_BUFFER)
+            prim["extensions"] = {"EXT_mesh_features": {"featureIds": [
+                {"featureCount": len(models), "attribute": 0, "propertyTable": 0}]}}
+        prims_of[i].append(prim)
+    for i, m in enumerate(models):
+        meshes.append({"name": m.name, "primitives": prims_of[i]})
         nodes.append({"name": m.name, "mesh": len(meshes) - 1,
                       "translation": [float(c) for c in bases_enu[i]], "extras": rows[i]})
     geo = georef.describe()
@@ -362,7 +447,7 @@ def node_world_positions(doc: dict, binary: bytes, name: str, z_up: bool = True)
 def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None, per_tree: bool = False,
               lod: Optional[int] = None, leaves: bool = True, texture_size: int = 256,
               metadata: bool = True, sidecars: bool = True, progress=None, cancelled=None,
-              content: str = "model") -> List[Path]:
+              content: str = "model", cache: Optional[dict] = None) -> List[Path]:
     """Write GLB file(s); returns the paths written.
 
     ``per_tree`` False: one file ``path`` (a tile) with its origin at
@@ -371,6 +456,7 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     ``tree_<id>.glb`` per tree, each with its origin at the tree base.  With
     ``sidecars`` a ``.prj`` and a ``.origin.json`` are written next to each file.
     ``content`` "billboard" writes the trees' billboards (Zhou et al.) instead of their models.
+    ``cache``: see :func:`glb_bytes` (pass the same dict to :func:`~.tiles3d.write_tileset` of these models).
     """
     models = check_models(models, f"glTF export to {path}")
     path = Path(path)
@@ -379,7 +465,7 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
         georef = Georef(frame, default_origin(models) if origin is None else origin)
         report(progress, 0.0, f"writing {len(models)} trees to {path.name}")
         out.append(atomic_write_bytes(path, glb_bytes(models, georef, lod, leaves, texture_size, metadata,
-                                                         content=content)))
+                                                         content=content, cache=cache)))
         if sidecars:
             out.extend(write_sidecars(path, georef))
         report(progress, 1.0, "done")

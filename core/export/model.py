@@ -91,7 +91,7 @@ class TreeModel:
         v = np.asarray(lv.vertices, dtype=np.float64).reshape(-1, 3)
         f = np.asarray(lv.faces, dtype=np.int64).reshape(-1, 3)
         uv = np.asarray(lv.uvs, dtype=np.float64).reshape(-1, 2)
-        if len(uv) != len(v) or (len(f) and (f.min() < 0 or f.max() >= len(v))) or not np.all(np.isfinite(v)):
+        if len(uv) != len(v) or _bad_index(f, len(v)) or not np.all(np.isfinite(v)):
             raise InputError(f"tree {self.tree_id}: leaf mesh is inconsistent "
                              f"({len(v)} vertices, {len(uv)} uvs, faces index up to {f.max() if len(f) else -1})")
         return v, f, uv
@@ -129,9 +129,14 @@ def _mesh_arrays(mesh, where):
     f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(v)):
         raise InputError(f"{where}: the mesh has non-finite vertex coordinates")
-    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+    if _bad_index(f, len(v)):
         raise InputError(f"{where}: mesh faces index vertices that do not exist")
     return v, f
+
+
+def _bad_index(faces: np.ndarray, n_vertices: int) -> bool:
+    """Whether int64 ``faces`` index outside 0 .. n_vertices - 1 (one pass: negatives wrap to huge unsigned)."""
+    return bool(len(faces)) and int(faces.view(np.uint64).max()) >= n_vertices
 
 
 def check_models(models, what: str = "export"):

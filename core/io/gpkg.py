@@ -99,12 +99,12 @@ def _write_table(con: sqlite3.Connection, table: VectorTable) -> None:
     geom_col = "geom BLOB, " if spatial else ""
     con.execute(f'CREATE TABLE "{name}" (fid INTEGER PRIMARY KEY AUTOINCREMENT, {geom_col}{cols})'.replace(", )", ")"))
     n = len(table)
-    values = [python_values(v, types[c]) for c, v in table.columns.items()]
+    values = [_python_values(v, types[c]) for c, v in table.columns.items()]
     bounds = (None,) * 4
     if spatial and table.has_m:
         header = _header(srs_id, False)
         values = [[None if w is None else header + w for w in table.geometries]] + values
-        geoms = np.array([None if w is None else shapely.from_wkb(w) for w in table.geometries], dtype=object)
+        geoms = shapely.from_wkb(np.asarray(table.geometries, dtype=object))
         if n:
             bounds = tuple(float(v) for v in shapely.total_bounds(geoms))
     elif spatial:
@@ -148,13 +148,22 @@ def _promote(geoms: np.ndarray, geometry_type: str) -> np.ndarray:
 def _blobs(geoms: np.ndarray, srs_id: int, has_z: bool) -> list:
     wkb = shapely.to_wkb(geoms, output_dimension=3 if has_z else 2, flavor="iso", byte_order=1)
     full, empty = _header(srs_id, False), _header(srs_id, True)
-    out = []
-    for g, w in zip(geoms, wkb):
-        if g is None:
-            out.append(None)
-        else:
-            out.append((empty if g.is_empty else full) + w)
-    return out
+    is_empty = shapely.is_empty(geoms).tolist()       # False for missing (None) geometries
+    return [None if w is None else (empty if e else full) + w for w, e in zip(wkb.tolist(), is_empty)]
+
+
+def _python_values(values, kind: str) -> list:
+    """:func:`sylva.core.table.python_values` (NaN -> None), by ``tolist`` for numeric columns."""
+    arr = np.asarray(values)
+    if kind == "integer" and arr.dtype.kind in "iub":
+        return (arr.astype(np.int64) if arr.dtype.kind == "b" else arr).tolist()
+    if kind == "real" and arr.dtype.kind in "iufb":
+        a = arr.astype(float)
+        out = a.tolist()
+        for i in np.flatnonzero(~np.isfinite(a)).tolist():
+            out[i] = None
+        return out
+    return python_values(values, kind)
 
 
 def read_gpkg(path, layer: str) -> VectorTable:
