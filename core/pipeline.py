@@ -453,10 +453,12 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
                             t.wood, t.leaves, {k: columns[k][i] for k in columns}, billboard=boards[i])
                   for i, t in enumerate(trees)]
         frame = ExportFrame.from_cloud(work)
-        write_glb(models, paths["glb"], frame, cancelled=cancelled)
+        encoded = {}   # meshes encoded once for the tile's GLB and its tileset
+        write_glb(models, paths["glb"], frame, cancelled=cancelled, cache=encoded)
         tileset_dir = paths["tileset"]
         tileset_dir.parent.mkdir(parents=True, exist_ok=True)
-        write_tileset(models, tileset_dir, frame, cancelled=cancelled)
+        write_tileset(models, tileset_dir, frame, cancelled=cancelled, cache=encoded)
+        del encoded
         files["glb"] = str(paths["glb"])
         files["tileset"] = str(tileset_dir / "tileset.json")
         skeletons = skeleton_table(trees, work, crs)

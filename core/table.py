@@ -1,7 +1,8 @@
 """VectorTable: a layer as plain arrays (geometries + attribute columns + CRS).
 
-Geometries are shapely objects, or ISO WKB ``bytes`` for measured (M)
-geometries, which shapely cannot hold.  Core functions return VectorTables; the front ends write them: the CLI to a
+Geometries are shapely objects, or ISO WKB ``bytes`` (little endian) for
+measured (M) geometries, which shapely cannot hold, and for layers encoded
+straight from arrays (``wkb=True``: the triangles of 3D models).  Core functions return VectorTables; the front ends write them: the CLI to a
 GeoPackage (:mod:`sylva.core.io.gpkg`), the Processing layer to a QGIS
 feature sink (so any format QGIS supports, and temporary layers inside a
 Graphical Modeler graph).  Column dtypes decide field types: integers ->
@@ -26,6 +27,13 @@ class VectorTable:
     crs: Any = None                      # pyproj.CRS or None
     has_z: bool = True
     has_m: bool = False                  # geometries are then ISO WKB bytes (shapely has no M)
+    wkb: bool = False                    # geometries are ISO WKB bytes (always so with has_m)
+    extent: Optional[tuple] = None       # (min_x, min_y, max_x, max_y) when known, else computed
+
+    @property
+    def raw(self) -> bool:
+        """True when ``geometries`` hold ISO WKB bytes rather than shapely objects."""
+        return self.has_m or self.wkb
 
     def __post_init__(self):
         if self.geometry_type not in GEOMETRY_TYPES:

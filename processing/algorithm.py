@@ -252,7 +252,7 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         from ..core.table import python_values
 
         wkb = None
-        if table.has_m:
+        if table.raw:
             wkb = table.geometries  # already ISO WKB
         elif table.geometries is not None:
             wkb = shapely.to_wkb(table.geometries, output_dimension=3 if table.has_z else 2, flavor="iso")

@@ -23,6 +23,7 @@ from the values: integers, reals (None -> NaN) or text.
 """
 from __future__ import annotations
 
+import struct
 from typing import Dict, List, Sequence
 
 import numpy as np
@@ -64,36 +65,47 @@ def _pick(model: TreeModel, coarsest: bool):
     return min(model.lods) if (coarsest and model.lods) else None
 
 
+#: One triangle as an ISO WKB Polygon Z (little endian): one closed ring of four points.
+_TRIANGLE = np.dtype([("order", "u1"), ("type", "<u4"), ("rings", "<u4"), ("points", "<u4"),
+                      ("xyz", "<f8", (4, 3))])
+
+
 def models_table(models: Sequence[TreeModel], frame: ExportFrame, leaves: bool = False, coarsest: bool = True,
                  name: str = "models_3d") -> VectorTable:
-    """The 3D layer of ``models`` (see the module docstring); geometry None for a tree with no triangles."""
-    import shapely
+    """The 3D layer of ``models`` (see the module docstring); geometry None for a tree with no triangles.
 
+    The MultiPolygon Z geometries are encoded as ISO WKB straight from the
+    triangle arrays (``VectorTable.wkb``): a tile's trees hold hundreds of
+    thousands of triangles, too many to build as shapely objects."""
     models = check_models(models, "3D layer")
     units = frame.resolved_units()
     scale = np.array([units.horizontal_m, units.horizontal_m, units.vertical_m])
-    rings, owner = [], []
+    geometries = np.full(len(models), None, dtype=object)
     counts = np.zeros(len(models), dtype=np.int64)
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for i, m in enumerate(models):
         parts = [m.wood_arrays(_pick(m, coarsest))]
         if leaves:
             parts.append(m.leaf_arrays()[:2])
+        tris = []
         for v, f in parts:
-            if len(f) == 0:
-                continue
-            tri = v[f]                                                   # (k, 3, 3) local metres
-            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-            tri = tri[area >= MIN_TRIANGLE_AREA_M2]
-            src = m.base + tri / scale                                   # source CRS coordinates
-            rings.append(np.concatenate([src, src[:, :1]], axis=1))      # closed rings (k, 4, 3)
-            owner.append(np.full(len(src), i, dtype=np.int64))
-            counts[i] += len(src)
-    geometries = np.full(len(models), None, dtype=object)
-    if rings:
-        polygons = shapely.polygons(np.concatenate(rings))
-        idx = np.concatenate(owner)
-        multi = shapely.multipolygons(polygons, indices=idx)     # one per tree that has triangles
-        geometries[np.unique(idx)] = multi
+            if len(f):
+                tri = v[f]                                               # (k, 3, 3) local metres
+                area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+                tris.append(tri[area >= MIN_TRIANGLE_AREA_M2])
+        src = m.base + np.concatenate(tris) / scale if tris else np.zeros((0, 3, 3))   # source CRS
+        if len(src) == 0:
+            continue
+        rec = np.empty(len(src), dtype=_TRIANGLE)
+        rec["order"], rec["type"], rec["rings"], rec["points"] = 1, 1003, 1, 4
+        rec["xyz"][:, :3] = src
+        rec["xyz"][:, 3] = src[:, 0]                                     # closed ring
+        geometries[i] = struct.pack("<BII", 1, 1006, len(src)) + rec.tobytes()
+        counts[i] = len(src)
+        lo = np.minimum(lo, src[..., :2].min(axis=(0, 1)))
+        hi = np.maximum(hi, src[..., :2].max(axis=(0, 1)))
     columns = attribute_columns([m.json_attributes() for m in models])
     columns["n_triangles"] = counts
-    return VectorTable(name, "polygon", geometries, columns, frame.pyproj_crs(), has_z=True)
+    extent = (lo[0], lo[1], hi[0], hi[1]) if counts.any() else None
+    return VectorTable(name, "polygon", geometries, columns, frame.pyproj_crs(), has_z=True, wkb=True,
+                       extent=extent)

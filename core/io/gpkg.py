@@ -101,11 +101,13 @@ def _write_table(con: sqlite3.Connection, table: VectorTable) -> None:
     n = len(table)
     values = [_python_values(v, types[c]) for c, v in table.columns.items()]
     bounds = (None,) * 4
-    if spatial and table.has_m:
+    if spatial and table.raw:
         header = _header(srs_id, False)
         values = [[None if w is None else header + w for w in table.geometries]] + values
-        geoms = shapely.from_wkb(np.asarray(table.geometries, dtype=object))
-        if n:
+        if table.extent is not None:
+            bounds = tuple(float(v) for v in table.extent)
+        elif n:
+            geoms = shapely.from_wkb(np.asarray(table.geometries, dtype=object))
             bounds = tuple(float(v) for v in shapely.total_bounds(geoms))
     elif spatial:
         geoms = _promote(np.asarray(table.geometries, dtype=object), table.geometry_type)
