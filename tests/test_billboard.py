@@ -188,6 +188,58 @@ def test_block_completion_and_bhattacharyya():
     assert s == 0
 
 
+def test_fast_paths_equal_the_straightforward_computations():
+    """The speed-ups (module docstring) give exactly what distance transforms, a k-d tree of all points,
+    binary_fill_holes and scikit-learn's GaussianMixture give."""
+    import warnings
+
+    from scipy import ndimage
+    from sklearn.mixture import GaussianMixture
+
+    from sylva.core.reconstruct import billboard as bbm
+
+    rng = np.random.default_rng(3)
+    for r in (1, 3, 7, 12):                      # closing by exact discs
+        occ = rng.uniform(size=(70, 50)) < 0.04
+        occ[:r + 2] = occ[-r - 2:] = False
+        occ[:, :r + 2] = occ[:, -r - 2:] = False
+        occ[35, 25] = True
+        dil = ndimage.distance_transform_edt(~occ) <= r
+        np.testing.assert_array_equal(bbm._disc_dilate(occ, r), dil)
+        np.testing.assert_array_equal(~bbm._disc_dilate(~dil, r), ndimage.distance_transform_edt(dil) > r)
+        np.testing.assert_array_equal(bbm._fill_holes(dil), ndimage.binary_fill_holes(dil))
+    # shape mask (stamped and row-gap dilations) against the distance-transform version
+    for n_pts, close_px in ((300, 9), (20000, 3)):
+        s, z = rng.uniform(0, 6, n_pts), rng.uniform(0, 9, n_pts)
+        mask, s0, z0 = bbm.shape_mask(s, z, 0.05, close_px)
+        col, row = np.floor((s - s0) / 0.05).astype(int), np.floor((z - z0) / 0.05).astype(int)
+        occ = np.zeros(mask.shape, bool)
+        occ[row, col] = True
+        ref = (ndimage.distance_transform_edt(ndimage.distance_transform_edt(~occ) <= close_px) > close_px) | occ
+        ref = ndimage.binary_fill_holes(ref)
+        lab, n = ndimage.label(ref, structure=np.ones((3, 3), bool))
+        sizes = np.bincount(lab.ravel())[1:]
+        np.testing.assert_array_equal(mask, np.r_[False, sizes >= 0.05 * sizes.max()][lab])
+    # closing radius: the subset bound gives the k-d tree of all points' answer
+    method = Billboard()
+    for xyz in (make_tree(n_trunk=4000, n_crown=20000)[0], rng.uniform(0, 20, (9000, 3))):
+        full = int(np.ceil(min(max(method.close_m, bbm._spacing(xyz)), method.max_close_m) / method.pixel_m))
+        assert bbm._close_px(xyz, method) == full
+    # EM: the labels of scikit-learn's GaussianMixture with the same seed
+    rgb = np.vstack([rng.normal((0.2, 0.47, 0.16), 0.03, (3000, 3)), rng.normal((0.47, 0.67, 0.92), 0.03, (800, 3))])
+    rgb = np.clip(rgb, 0, 1)
+    feats = bbm._hsv_cone(rgb)
+    train = feats[np.sort(np.random.default_rng(11).choice(len(rgb), 1500, replace=False))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gmm = GaussianMixture(2, covariance_type="diag", max_iter=50, reg_covar=1e-4, init_params="k-means++",
+                              random_state=11).fit(train)
+    ref = gmm.predict(feats) == int(np.argmin(np.linalg.norm(gmm.means_ - feats.mean(axis=0), axis=1)))
+    keep = bbm.gmm_clean(rgb, 2, 11)
+    np.testing.assert_array_equal(keep, ref)
+    assert keep[:3000].all() and not keep[3000:].any()
+
+
 def test_procedural_texture_without_colours_and_bad_input():
     xyz, _, _ = make_tree(seed=7)
     bb = billboard_tree(xyz, ground_z=0.0)
