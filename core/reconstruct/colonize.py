@@ -44,12 +44,10 @@ one apical and one lateral child; nodes without free buds leave the bud set,
 and so do buds with no marker left within the largest d_i (checked every 8
 iterations).
 
-Each iteration (vectorised; the Python loop runs over iterations only):
-every active marker is assigned to the nearest bud that perceives it within
-d_i (a ``cKDTree`` of the current buds, rebuilt per iteration; one nearest
-query of all active markers finds the growth front, one k = 8 query of the
-front gives the candidates for the perception test), per-bud direction sums
-use ``np.add.at``, every bud with markers grows, and markers within the
+Each iteration: every active marker is assigned to the nearest of its
+k = 8 nearest buds within d_i that perceives it (the markers with a bud
+within d_i form the growth front), per-bud direction sums are accumulated
+in marker order, every bud with markers grows, and markers within the
 kill distance d_k (``kill_distance_m``; Pałubicki: d_k = 0.5 d_i, i.e. 2l at
 d_i = 4l) of a new node are removed.  When no bud perceives any marker, the
 stem's apical bud (the tip of the chain of apical children from the root)
@@ -61,6 +59,19 @@ Otherwise d_i is widened (×1.5 per iteration, up to 12l).  Growth stops
 when no marker is left, after ``max_iterations``, or after 6 iterations
 without growth; flags ``"stalled"`` / ``"max_iterations"`` are set only when
 measured points are left unreached.
+
+Implementation (Sylva, not in the paper).  The iterations are sequential, so
+they run in one compiled kernel (:func:`_grow_kernel`, numba through
+:mod:`sylva.core.jit`; plain Python without numba), 16 iterations per call
+between progress reports and cancel checks; uniform grids replace the
+per-iteration ``cKDTree`` of the buds and the kill/retirement queries.  The
+kernel does the numpy formulation's arithmetic in the same order (including
+einsum's (x₀y₀ + x₂y₂) + x₁y₁ for 3-vector dot products), so skeletons are
+bit-identical to it; the one difference is the order of *exactly*
+equidistant buds (e.g. two coincident nodes), which ``cKDTree`` leaves to its
+heap and the kernel breaks by node index.  The PCA covariances, the hull
+test and the "any point within r" tests are small kernels as well, and the
+crown's convex hull is computed once for the interior test and the fill.
 
 Crown filling (§6.1).  Airborne scans see the crown's top surface and little
 of its interior.  When fewer than ``interior_min_fraction`` of the points lie
@@ -112,6 +123,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..errors import InputError
+from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
 from .model import Reconstruction, Skeleton, TreePoints, screen
 from .trunk import add_trunk_points
@@ -154,9 +166,7 @@ def pca_weights(xyz: np.ndarray, radius_m: float, cos_min: float = 0.9, k: int =
     tree = cKDTree(xyz)
     kk = max(1, min(int(k), n))
     _, idx = tree.query(xyz, k=kk)
-    nb = xyz[np.asarray(idx).reshape(n, kk)]
-    c = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", c, c) / kk
+    cov = _pca_cov_kernel(np.ascontiguousarray(xyz), np.asarray(idx, dtype=np.int64).reshape(n, kk))
     _, vec = np.linalg.eigh(cov)
     axis = vec[:, :, -1]
     pairs = tree.query_pairs(radius_m, output_type="ndarray")
@@ -185,9 +195,9 @@ def influence_distance(t, height_m: float, step_m: float, h0: float = 2.0, rho0:
 
 def _inside_hull(hull: ConvexHull, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     """Per point: inside ``hull`` (its facet half-spaces ``A x + b <= 0``, vectorised)."""
-    eq = hull.equations
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return (np.einsum("ni,fi->nf", p, eq[:, :3]) + eq[:, 3] <= tol).all(axis=1)
+    eq = np.ascontiguousarray(hull.equations, dtype=np.float64)
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    return _inside_hull_kernel(p, eq, float(tol))
 
 
 def _hull(xyz: np.ndarray) -> Optional[ConvexHull]:
@@ -207,7 +217,11 @@ def interior_fraction(xyz: np.ndarray, shrink: float = 0.5) -> float:
     whose interior is occluded, much less (Guo §6.1's "invisible interior").
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    hull = _hull(xyz)
+    return _interior_fraction(xyz, _hull(xyz), shrink)
+
+
+def _interior_fraction(xyz: np.ndarray, hull: Optional[ConvexHull], shrink: float = 0.5) -> float:
+    """:func:`interior_fraction` with the hull of ``xyz`` already computed (or None when flat)."""
     if hull is None:
         return 0.0
     c = xyz.mean(axis=0)
@@ -227,7 +241,12 @@ def crown_fill_markers(xyz: np.ndarray, spacing_m: float, seed: int = 0,
     Returns (m, 3); empty when the hull is flat.
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    hull = _hull(xyz)
+    return _crown_fill_markers(xyz, _hull(xyz), spacing_m, seed, max_markers)
+
+
+def _crown_fill_markers(xyz: np.ndarray, hull: Optional[ConvexHull], spacing_m: float, seed: int = 0,
+                        max_markers: int = 50_000) -> np.ndarray:
+    """:func:`crown_fill_markers` with the hull of ``xyz`` already computed (or None when flat)."""
     if hull is None:
         return np.zeros((0, 3))
     v = xyz[hull.vertices]
@@ -242,8 +261,7 @@ def crown_fill_markers(xyz: np.ndarray, spacing_m: float, seed: int = 0,
     cand = lo + ii * s + rng.uniform(-0.25 * s, 0.25 * s, size=ii.shape)
     cand = cand[_inside_hull(hull, cand)]
     if len(cand):
-        d, _ = cKDTree(xyz).query(cand, distance_upper_bound=0.5 * s)
-        cand = cand[~np.isfinite(d)]
+        cand = cand[~_near_any_kernel(np.ascontiguousarray(cand), np.ascontiguousarray(xyz), 0.5 * s)]
     return cand
 
 
@@ -285,6 +303,656 @@ def find_root_clusters(xyz: np.ndarray, ground_z: float, band_m: float, link_m: 
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.where(n > 1e-12, v / np.maximum(n, 1e-12), 0.0)
+
+
+# --------------------------------------------------------------------------- compiled kernels
+@njit
+def _inside_hull_kernel(points, eq, tol):
+    """Per point: inside the hull (``eq`` rows a·x + b <= tol), stopping at the first facet outside.
+
+    Same arithmetic as numpy's einsum formulation, which sums a 3-vector dot
+    product as (a0 x + a2 z) + a1 y, then + b: identical booleans; Sylva, not in the paper (a speed-up of the §6.1 hull test).
+    """
+    n = points.shape[0]
+    f = eq.shape[0]
+    out = np.ones(n, dtype=np.bool_)
+    for i in range(n):
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        for j in range(f):
+            s = (x * eq[j, 0] + z * eq[j, 2]) + y * eq[j, 1]
+            if not s + eq[j, 3] <= tol:
+                out[i] = False
+                break
+    return out
+
+
+@njit
+def _pca_cov_kernel(xyz, idx):
+    """Covariance of every point's neighbourhood ``xyz[idx[i]]`` (Guo et al. §5.2, Eq. 8's PCA).
+
+    Centred on the neighbourhood mean and divided by k; sums run over the
+    neighbours in the order of ``idx`` (as numpy's mean and einsum do), so the
+    matrices are identical to the numpy formulation (Sylva, not in the paper).
+    """
+    n, k = idx.shape
+    cov = np.empty((n, 3, 3))
+    c = np.empty((k, 3))
+    for p in range(n):
+        m0 = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        for q in range(k):
+            j = idx[p, q]
+            m0 += xyz[j, 0]
+            m1 += xyz[j, 1]
+            m2 += xyz[j, 2]
+        m0 = m0 / k
+        m1 = m1 / k
+        m2 = m2 / k
+        for q in range(k):
+            j = idx[p, q]
+            c[q, 0] = xyz[j, 0] - m0
+            c[q, 1] = xyz[j, 1] - m1
+            c[q, 2] = xyz[j, 2] - m2
+        for a in range(3):
+            for b in range(3):
+                s = 0.0
+                for q in range(k):
+                    s += c[q, a] * c[q, b]
+                cov[p, a, b] = s / k
+    return cov
+
+
+@njit
+def _near_any_kernel(points, centres, r):
+    """Per point: is a centre closer than ``r`` (d² < r², the test of ``cKDTree.query``'s
+    ``distance_upper_bound``)?  A uniform grid of cell r over the centres (Sylva, not in the paper)."""
+    n = points.shape[0]
+    mc = centres.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    if n == 0 or mc == 0:
+        return out
+    lo0 = centres[0, 0]
+    lo1 = centres[0, 1]
+    lo2 = centres[0, 2]
+    hi0 = lo0
+    hi1 = lo1
+    hi2 = lo2
+    for i in range(mc):
+        lo0 = min(lo0, centres[i, 0])
+        lo1 = min(lo1, centres[i, 1])
+        lo2 = min(lo2, centres[i, 2])
+        hi0 = max(hi0, centres[i, 0])
+        hi1 = max(hi1, centres[i, 1])
+        hi2 = max(hi2, centres[i, 2])
+    cs = r
+    while True:
+        gx = int((hi0 - lo0) / cs) + 1
+        gy = int((hi1 - lo1) / cs) + 1
+        gz = int((hi2 - lo2) / cs) + 1
+        if gx * gy * gz <= 4 * mc + 4096:
+            break
+        cs *= 1.5
+    ncell = gx * gy * gz
+    start = np.zeros(ncell + 1, dtype=np.int64)
+    cell = np.empty(mc, dtype=np.int64)
+    for i in range(mc):
+        cx = min(max(int(np.floor((centres[i, 0] - lo0) / cs)), 0), gx - 1)
+        cy = min(max(int(np.floor((centres[i, 1] - lo1) / cs)), 0), gy - 1)
+        cz = min(max(int(np.floor((centres[i, 2] - lo2) / cs)), 0), gz - 1)
+        cell[i] = (cx * gy + cy) * gz + cz
+        start[cell[i] + 1] += 1
+    for c in range(ncell):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(mc, dtype=np.int64)
+    for i in range(mc):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    r2 = r * r
+    for p in range(n):
+        px = points[p, 0]
+        py = points[p, 1]
+        pz = points[p, 2]
+        cx = min(max(int(np.floor((px - lo0) / cs)), 0), gx - 1)
+        cy = min(max(int(np.floor((py - lo1) / cs)), 0), gy - 1)
+        cz = min(max(int(np.floor((pz - lo2) / cs)), 0), gz - 1)
+        found = False
+        for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
+            for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
+                for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
+                    c = (ix * gy + iy) * gz + iz
+                    for s in range(start[c], start[c + 1]):
+                        i = order[s]
+                        dx = px - centres[i, 0]
+                        dy = py - centres[i, 1]
+                        dz = pz - centres[i, 2]
+                        if dx * dx + dy * dy + dz * dz < r2:
+                            found = True
+                            break
+                    if found:
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[p] = found
+    return out
+
+
+@njit
+def _grow_kernel(markers, weight, active, pos, heading, parent, n_children, seed, bud_free, added,
+                 leader, m, stall, boost, it_lo, it_hi, di_of_t, cos_tab, sin_tab, l, dk,
+                 cos_apical, cos_lateral, cos_psi, sin_psi, alpha, beta, di_max, node_limit):
+    """Iterations ``it_lo`` .. ``it_hi - 1`` of the guided growth (Guo et al. §5.2, Eq. 6-9).
+
+    The sequential loop of :meth:`GuidedGrowth._grow`, compiled: per iteration
+    every active marker finds its ``_K_BUDS`` nearest free buds within d_i
+    (a uniform grid of cell d_i over the buds replaces the per-iteration
+    ``cKDTree``; same strict ``d² < d_i²`` test and the same distance order)
+    and goes to the first that perceives it (apical cone θ/2 for tips, lateral
+    cone ψ + θ/2 otherwise); buds with markers grow one growth unit along
+    V_A of Eq. 9; markers within d_k of a new node are killed; the stem's
+    apical bud bridges gaps; buds with no marker within 12l are retired every
+    8 iterations.  The arithmetic is written in the same order as the numpy
+    formulation it replaces, so the skeleton is bit-identical (Sylva, not
+    in the paper: an implementation detail).
+
+    Node arrays are grown here when full and returned.  ``code``: 0 ran to
+    ``it_hi``; 1 no marker left; 2 node limit; 3 no free bud; 4 stalled; 5 the
+    roll-angle tables ``cos_tab``/``sin_tab`` are too short (nothing of
+    iteration ``it`` was changed: enlarge them and call again from ``it``).
+    """
+    n = markers.shape[0]
+    cap = pos.shape[0]
+    # Static grid over the markers (for the kill and retirement searches).
+    lo0 = markers[0, 0]
+    lo1 = markers[0, 1]
+    lo2 = markers[0, 2]
+    hi0 = lo0
+    hi1 = lo1
+    hi2 = lo2
+    for i in range(n):
+        lo0 = min(lo0, markers[i, 0])
+        lo1 = min(lo1, markers[i, 1])
+        lo2 = min(lo2, markers[i, 2])
+        hi0 = max(hi0, markers[i, 0])
+        hi1 = max(hi1, markers[i, 1])
+        hi2 = max(hi2, markers[i, 2])
+    gs = max(dk, di_max / 4.0)
+    while True:
+        gx = int((hi0 - lo0) / gs) + 1
+        gy = int((hi1 - lo1) / gs) + 1
+        gz = int((hi2 - lo2) / gs) + 1
+        if gx * gy * gz <= 4 * n + 4096:
+            break
+        gs *= 1.5
+    ncell = gx * gy * gz
+    mcell = np.empty(n, dtype=np.int64)
+    mstart = np.zeros(ncell + 1, dtype=np.int64)
+    for i in range(n):
+        cx = min(max(int(np.floor((markers[i, 0] - lo0) / gs)), 0), gx - 1)
+        cy = min(max(int(np.floor((markers[i, 1] - lo1) / gs)), 0), gy - 1)
+        cz = min(max(int(np.floor((markers[i, 2] - lo2) / gs)), 0), gz - 1)
+        c = (cx * gy + cy) * gz + cz
+        mcell[i] = c
+        mstart[c + 1] += 1
+    for c in range(ncell):
+        mstart[c + 1] += mstart[c]
+    mfill = mstart[:-1].copy()
+    morder = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        c = mcell[i]
+        morder[mfill[c]] = i
+        mfill[c] += 1
+    rk = int(np.ceil(dk / gs))
+    rp = int(np.ceil(di_max / gs))
+    dk2 = dk * dk
+    dimax2 = di_max * di_max
+
+    am = np.empty(n, dtype=np.int64)
+    front = np.zeros(n, dtype=np.bool_)
+    sel = np.empty(n, dtype=np.int64)
+    selu = np.empty((n, 3))
+    kb = _K_BUDS
+    bd2 = np.empty(kb)
+    bid = np.empty(kb, dtype=np.int64)
+
+    code = 0
+    it = it_lo
+    while it < it_hi:
+        n_act = 0
+        for i in range(n):
+            if active[i]:
+                am[n_act] = i
+                n_act += 1
+        if n_act == 0:
+            code = 1
+            break
+        if m > node_limit:
+            code = 2
+            break
+        buds = np.empty(m, dtype=np.int64)
+        nb = 0
+        for j in range(m):
+            if bud_free[j]:
+                buds[nb] = j
+                nb += 1
+        if nb == 0:
+            code = 3
+            break
+        di0 = di_of_t[it - 1]
+        rho_units = di0 / l
+        di = min(di0 * boost, di_max)
+        di2 = di * di
+        # Grid of cell >= d_i over the buds (clamped to the markers' box: still exact).
+        bs = di
+        while True:
+            bx = int((hi0 - lo0) / bs) + 1
+            by = int((hi1 - lo1) / bs) + 1
+            bz = int((hi2 - lo2) / bs) + 1
+            if bx * by * bz <= 4 * n + 4096:
+                break
+            bs *= 1.5
+        nbc = bx * by * bz
+        bstart = np.zeros(nbc + 1, dtype=np.int64)
+        bcell = np.empty(nb, dtype=np.int64)
+        for q in range(nb):
+            j = buds[q]
+            cx = min(max(int(np.floor((pos[j, 0] - lo0) / bs)), 0), bx - 1)
+            cy = min(max(int(np.floor((pos[j, 1] - lo1) / bs)), 0), by - 1)
+            cz = min(max(int(np.floor((pos[j, 2] - lo2) / bs)), 0), bz - 1)
+            c = (cx * by + cy) * bz + cz
+            bcell[q] = c
+            bstart[c + 1] += 1
+        for c in range(nbc):
+            bstart[c + 1] += bstart[c]
+        bfill = bstart[:-1].copy()
+        border = np.empty(nb, dtype=np.int64)
+        for q in range(nb):
+            c = bcell[q]
+            border[bfill[c]] = buds[q]
+            bfill[c] += 1
+
+        any_has = False
+        for q in range(n_act):
+            i = am[q]
+            px = markers[i, 0]
+            py = markers[i, 1]
+            pz = markers[i, 2]
+            cx = min(max(int(np.floor((px - lo0) / bs)), 0), bx - 1)
+            cy = min(max(int(np.floor((py - lo1) / bs)), 0), by - 1)
+            cz = min(max(int(np.floor((pz - lo2) / bs)), 0), bz - 1)
+            cnt = 0
+            for ix in range(max(cx - 1, 0), min(cx + 2, bx)):
+                for iy in range(max(cy - 1, 0), min(cy + 2, by)):
+                    for iz in range(max(cz - 1, 0), min(cz + 2, bz)):
+                        c = (ix * by + iy) * bz + iz
+                        for s in range(bstart[c], bstart[c + 1]):
+                            j = border[s]
+                            dx = px - pos[j, 0]
+                            dy = py - pos[j, 1]
+                            dz = pz - pos[j, 2]
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if not d2 < di2:
+                                continue
+                            if cnt == kb and not d2 < bd2[kb - 1]:
+                                continue
+                            r = cnt if cnt < kb else kb - 1
+                            while r > 0 and (d2 < bd2[r - 1] or (d2 == bd2[r - 1] and j < bid[r - 1])):
+                                bd2[r] = bd2[r - 1]
+                                bid[r] = bid[r - 1]
+                                r -= 1
+                            bd2[r] = d2
+                            bid[r] = j
+                            if cnt < kb:
+                                cnt += 1
+            front[i] = cnt > 0
+            sel[q] = -1
+            for r in range(cnt):
+                j = bid[r]
+                vx = px - pos[j, 0]
+                vy = py - pos[j, 1]
+                vz = pz - pos[j, 2]
+                nrm = np.sqrt((vx * vx + vz * vz) + vy * vy)       # einsum's order
+                den = max(nrm, 1e-12)
+                ux = vx / den
+                uy = vy / den
+                uz = vz / den
+                cmin = cos_apical if (n_children[j] == 0 and not seed[j]) else cos_lateral
+                if nrm > 1e-9 and (ux * heading[j, 0] + uz * heading[j, 2]) + uy * heading[j, 1] > cmin:
+                    sel[q] = j
+                    selu[q, 0] = ux
+                    selu[q, 1] = uy
+                    selu[q, 2] = uz
+                    any_has = True
+                    break
+
+        if not any_has:
+            # No bud perceives a marker: the stem's apical bud bridges (L-system 1, rule 2).
+            zmax = markers[am[0], 2]
+            for q in range(n_act):
+                zmax = max(zmax, markers[am[q], 2])
+            tips = np.empty(m, dtype=np.int64)
+            nt = 0
+            for j in range(m):
+                if leader[j] and n_children[j] == 0 and bud_free[j] and pos[j, 2] < zmax:
+                    tips[nt] = j
+                    nt += 1
+            if nt > 0 and boost == 1.0:
+                ku = max(1, int(rho_units))
+                need = m + nt * ku
+                if need > cap:
+                    cap = max(need, 2 * cap)
+                    p2 = np.zeros((cap, 3)); p2[:m] = pos[:m]; pos = p2
+                    h2 = np.zeros((cap, 3)); h2[:m] = heading[:m]; heading = h2
+                    a2 = np.full(cap, -1, dtype=np.int64); a2[:m] = parent[:m]; parent = a2
+                    c2 = np.zeros(cap, dtype=np.int64); c2[:m] = n_children[:m]; n_children = c2
+                    s2 = np.zeros(cap, dtype=np.bool_); s2[:m] = seed[:m]; seed = s2
+                    f2 = np.zeros(cap, dtype=np.bool_); f2[:m] = bud_free[:m]; bud_free = f2
+                    d2a = np.zeros(cap, dtype=np.bool_); d2a[:m] = added[:m]; added = d2a
+                    e2 = np.zeros(cap, dtype=np.bool_); e2[:m] = leader[:m]; leader = e2
+                first_new = m
+                for t in range(nt):
+                    j = tips[t]
+                    hx = heading[j, 0] + 0.0
+                    hy = heading[j, 1] + 0.0
+                    hz = heading[j, 2] + 1.0
+                    hn = np.sqrt(hx * hx + hy * hy + hz * hz)
+                    if hn > 1e-12:
+                        hd = max(hn, 1e-12)
+                        hx = hx / hd
+                        hy = hy / hd
+                        hz = hz / hd
+                    else:
+                        hx = 0.0
+                        hy = 0.0
+                        hz = 0.0
+                    prev = j
+                    for k in range(1, ku + 1):
+                        step = l * k
+                        pos[m, 0] = pos[j, 0] + step * hx
+                        pos[m, 1] = pos[j, 1] + step * hy
+                        pos[m, 2] = pos[j, 2] + step * hz
+                        heading[m, 0] = hx
+                        heading[m, 1] = hy
+                        heading[m, 2] = hz
+                        parent[m] = prev
+                        n_children[m] = 0
+                        n_children[prev] += 1
+                        seed[m] = True
+                        added[m] = True
+                        bud_free[m] = True
+                        leader[m] = True
+                        prev = m
+                        m += 1
+                    bud_free[j] = True
+                for q in range(first_new, m):
+                    cx = min(max(int(np.floor((pos[q, 0] - lo0) / gs)), 0), gx - 1)
+                    cy = min(max(int(np.floor((pos[q, 1] - lo1) / gs)), 0), gy - 1)
+                    cz = min(max(int(np.floor((pos[q, 2] - lo2) / gs)), 0), gz - 1)
+                    for ix in range(max(cx - rk, 0), min(cx + rk + 1, gx)):
+                        for iy in range(max(cy - rk, 0), min(cy + rk + 1, gy)):
+                            for iz in range(max(cz - rk, 0), min(cz + rk + 1, gz)):
+                                c = (ix * gy + iy) * gz + iz
+                                for s in range(mstart[c], mstart[c + 1]):
+                                    i = morder[s]
+                                    if active[i]:
+                                        dx = markers[i, 0] - pos[q, 0]
+                                        dy = markers[i, 1] - pos[q, 1]
+                                        dz = markers[i, 2] - pos[q, 2]
+                                        if dx * dx + dy * dy + dz * dz < dk2:
+                                            active[i] = False
+                it += 1
+                continue
+            stall += 1
+            if stall >= _STALL_LIMIT:
+                code = 4
+                break
+            boost *= 1.5
+            it += 1
+            continue
+
+        # Growth (Eq. 9 and one growth unit per growing bud).  Nothing is changed
+        # before the new nodes are added, so code 5 can return cleanly.
+        sums = np.zeros((m, 3))
+        csum = np.zeros((m, 3))
+        wsum = np.zeros(m)
+        for q in range(n_act):
+            j = sel[q]
+            if j < 0:
+                continue
+            i = am[q]
+            w = weight[i]
+            sums[j, 0] += w * selu[q, 0]
+            sums[j, 1] += w * selu[q, 1]
+            sums[j, 2] += w * selu[q, 2]
+            wsum[j] += w
+            csum[j, 0] += w * markers[i, 0]
+            csum[j, 1] += w * markers[i, 1]
+            csum[j, 2] += w * markers[i, 2]
+        grow = np.empty(m, dtype=np.int64)
+        ng = 0
+        for j in range(m):
+            if wsum[j] > 0:
+                grow[ng] = j
+                ng += 1
+        vnew = np.empty((ng, 3))
+        units = np.empty(ng, dtype=np.int64)
+        tipg = np.empty(ng, dtype=np.bool_)
+        maxu = max(1, int(rho_units))
+        short = False
+        for g in range(ng):
+            j = grow[g]
+            ws = wsum[j]
+            o0 = sums[j, 0] / ws
+            o1 = sums[j, 1] / ws
+            o2 = sums[j, 2] / ws
+            h0 = heading[j, 0]
+            h1 = heading[j, 1]
+            h2 = heading[j, 2]
+            is_tip = n_children[j] == 0
+            tipg[g] = is_tip
+            dd = o0 * h0 + o1 * h1 + o2 * h2
+            a0 = o0 - dd * h0
+            a1 = o1 - dd * h1
+            a2 = o2 - dd * h2
+            if np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) < 1e-6:
+                # No azimuth from the markers: the roll angle φ (Table 2).
+                if abs(h2) < 0.9:
+                    r0 = 0.0
+                    r1 = 0.0
+                    r2 = 1.0
+                else:
+                    r0 = 1.0
+                    r1 = 0.0
+                    r2 = 0.0
+                e0 = h1 * r2 - h2 * r1
+                e1 = h2 * r0 - h0 * r2
+                e2 = h0 * r1 - h1 * r0
+                en = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                if en > 1e-12:
+                    ed = max(en, 1e-12)
+                    e0 = e0 / ed
+                    e1 = e1 / ed
+                    e2 = e2 / ed
+                else:
+                    e0 = 0.0
+                    e1 = 0.0
+                    e2 = 0.0
+                f0 = h1 * e2 - h2 * e1
+                f1 = h2 * e0 - h0 * e2
+                f2 = h0 * e1 - h1 * e0
+                ia = j + n_children[j]
+                if ia >= cos_tab.shape[0]:
+                    short = True
+                    break
+                ca = cos_tab[ia]
+                sa = sin_tab[ia]
+                a0 = ca * e0 + sa * f0
+                a1 = ca * e1 + sa * f1
+                a2 = ca * e2 + sa * f2
+            an = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            if an > 1e-12:
+                ad = max(an, 1e-12)
+                a0 = a0 / ad
+                a1 = a1 / ad
+                a2 = a2 / ad
+            else:
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+            if is_tip:
+                d0 = h0
+                d1 = h1
+                d2_ = h2
+            else:
+                d0 = cos_psi * h0 + sin_psi * a0
+                d1 = cos_psi * h1 + sin_psi * a1
+                d2_ = cos_psi * h2 + sin_psi * a2
+            v0 = d0 + alpha * o0 + beta * 0.0
+            v1 = d1 + alpha * o1 + beta * 0.0
+            v2 = d2_ + alpha * o2 + beta * -1.0
+            vn = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            if vn > 1e-9:
+                vd = max(vn, 1e-12)
+                v0 = v0 / vd
+                v1 = v1 / vd
+                v2 = v2 / vd
+            else:
+                v0 = d0
+                v1 = d1
+                v2 = d2_
+            vnew[g, 0] = v0
+            vnew[g, 1] = v1
+            vnew[g, 2] = v2
+            c0 = csum[j, 0] / ws - pos[j, 0]
+            c1 = csum[j, 1] / ws - pos[j, 1]
+            c2 = csum[j, 2] / ws - pos[j, 2]
+            reach = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            u = np.rint(reach / l)
+            if u < 1.0:
+                u = 1.0
+            if u > maxu:
+                u = float(maxu)
+            units[g] = int(u)
+        if short:
+            code = 5
+            break
+        stall = 0
+        boost = 1.0
+        total = 0
+        umax = 0
+        for g in range(ng):
+            total += units[g]
+            umax = max(umax, units[g])
+        need = m + total
+        if need > cap:
+            cap = max(need, 2 * cap)
+            p2 = np.zeros((cap, 3)); p2[:m] = pos[:m]; pos = p2
+            h2a = np.zeros((cap, 3)); h2a[:m] = heading[:m]; heading = h2a
+            a2a = np.full(cap, -1, dtype=np.int64); a2a[:m] = parent[:m]; parent = a2a
+            c2a = np.zeros(cap, dtype=np.int64); c2a[:m] = n_children[:m]; n_children = c2a
+            s2 = np.zeros(cap, dtype=np.bool_); s2[:m] = seed[:m]; seed = s2
+            f2a = np.zeros(cap, dtype=np.bool_); f2a[:m] = bud_free[:m]; bud_free = f2a
+            d2a = np.zeros(cap, dtype=np.bool_); d2a[:m] = added[:m]; added = d2a
+            e2a = np.zeros(cap, dtype=np.bool_); e2a[:m] = leader[:m]; leader = e2a
+        first_new = m
+        for g in range(ng):
+            j = grow[g]
+            lead = tipg[g] and leader[j]
+            prev = j
+            for k in range(1, units[g] + 1):
+                step = l * k
+                pos[m, 0] = pos[j, 0] + step * vnew[g, 0]
+                pos[m, 1] = pos[j, 1] + step * vnew[g, 1]
+                pos[m, 2] = pos[j, 2] + step * vnew[g, 2]
+                heading[m, 0] = vnew[g, 0]
+                heading[m, 1] = vnew[g, 1]
+                heading[m, 2] = vnew[g, 2]
+                parent[m] = prev
+                n_children[m] = 0
+                n_children[prev] += 1
+                seed[m] = False
+                added[m] = False
+                bud_free[m] = True
+                leader[m] = lead
+                prev = m
+                m += 1
+        # A node's buds are spent once it has its apical and one lateral child.
+        for g in range(ng):
+            j = grow[g]
+            bud_free[j] = n_children[j] < 2
+        # Kill markers within d_k of the new nodes (the front suffices when d_k + shoot <= d_i).
+        only_front = dk + l * umax <= di
+        for q in range(first_new, m):
+            cx = min(max(int(np.floor((pos[q, 0] - lo0) / gs)), 0), gx - 1)
+            cy = min(max(int(np.floor((pos[q, 1] - lo1) / gs)), 0), gy - 1)
+            cz = min(max(int(np.floor((pos[q, 2] - lo2) / gs)), 0), gz - 1)
+            for ix in range(max(cx - rk, 0), min(cx + rk + 1, gx)):
+                for iy in range(max(cy - rk, 0), min(cy + rk + 1, gy)):
+                    for iz in range(max(cz - rk, 0), min(cz + rk + 1, gz)):
+                        c = (ix * gy + iy) * gz + iz
+                        for s in range(mstart[c], mstart[c + 1]):
+                            i = morder[s]
+                            if active[i] and (front[i] or not only_front):
+                                dx = markers[i, 0] - pos[q, 0]
+                                dy = markers[i, 1] - pos[q, 1]
+                                dz = markers[i, 2] - pos[q, 2]
+                                if dx * dx + dy * dy + dz * dz < dk2:
+                                    active[i] = False
+        # Buds with no active marker within the largest influence distance never grow again
+        # (except the stem's apical tip, which may still bridge a gap).
+        if it % 8 == 0:
+            left = False
+            for i in range(n):
+                if active[i]:
+                    left = True
+                    break
+            if left:
+                for j in range(m):
+                    if not bud_free[j] or (leader[j] and n_children[j] == 0):
+                        continue
+                    cx = min(max(int(np.floor((pos[j, 0] - lo0) / gs)), 0), gx - 1)
+                    cy = min(max(int(np.floor((pos[j, 1] - lo1) / gs)), 0), gy - 1)
+                    cz = min(max(int(np.floor((pos[j, 2] - lo2) / gs)), 0), gz - 1)
+                    found = False
+                    for ix in range(max(cx - rp, 0), min(cx + rp + 1, gx)):
+                        for iy in range(max(cy - rp, 0), min(cy + rp + 1, gy)):
+                            for iz in range(max(cz - rp, 0), min(cz + rp + 1, gz)):
+                                c = (ix * gy + iy) * gz + iz
+                                for s in range(mstart[c], mstart[c + 1]):
+                                    i = morder[s]
+                                    if active[i]:
+                                        dx = markers[i, 0] - pos[j, 0]
+                                        dy = markers[i, 1] - pos[j, 1]
+                                        dz = markers[i, 2] - pos[j, 2]
+                                        if dx * dx + dy * dy + dz * dz < dimax2:
+                                            found = True
+                                            break
+                                if found:
+                                    break
+                            if found:
+                                break
+                        if found:
+                            break
+                    if not found:
+                        bud_free[j] = False
+        it += 1
+    return (pos, heading, parent, n_children, seed, bud_free, added, leader, m, stall, boost, it, code)
+
+
+def _roll_tables(roll: float, size: int):
+    """cos and sin of the roll angle φ·j, j < ``size`` (lateral bud j + its children, Table 2's φ).
+
+    Computed by numpy outside the kernel so that they are the very values the
+    numpy formulation used (numpy's vectorised cos/sin may differ from libm's
+    in the last bit).
+    """
+    ang = roll * np.arange(size)
+    return np.cos(ang), np.sin(ang)
 
 
 class _Nodes:
@@ -512,12 +1180,13 @@ class GuidedGrowth:
         # Crown filling (§6.1).
         t0 = time.perf_counter()
         crown = xyz[xyz[:, 2] >= np.percentile(xyz[:, 2], 5.0)]
-        frac = interior_fraction(crown)
+        crown_hull = _hull(crown)       # one hull for the interior test and the fill
+        frac = _interior_fraction(crown, crown_hull)
         stats["interior_fraction"] = frac
         fill = np.zeros((0, 3))
         if self.crown_fill == "always" or (self.crown_fill == "auto" and frac < self.interior_min_fraction):
-            fill = crown_fill_markers(crown, self.fill_spacing_m, self.seed,
-                                      max_markers=max(64, int(self.fill_max_per_point * n)))
+            fill = _crown_fill_markers(crown, crown_hull, self.fill_spacing_m, self.seed,
+                                       max_markers=max(64, int(self.fill_max_per_point * n)))
             if len(fill):
                 flags.append("crown_filled")
         markers = np.concatenate([xyz, fill])
@@ -544,8 +1213,10 @@ class GuidedGrowth:
 
     def _coverage(self, nodes: np.ndarray, xyz: np.ndarray) -> float:
         """Share of ``xyz`` within the kill distance of a node."""
-        d, _ = cKDTree(nodes).query(xyz, distance_upper_bound=self.kill_distance_m * (1 + 1e-9))
-        return float(np.isfinite(d).mean()) if len(xyz) else 0.0
+        near = _near_any_kernel(np.ascontiguousarray(xyz, dtype=np.float64),
+                                np.ascontiguousarray(nodes, dtype=np.float64),
+                                float(self.kill_distance_m * (1 + 1e-9)))
+        return float(near.mean()) if len(xyz) else 0.0
 
     def _grow(self, nodes: _Nodes, markers: np.ndarray, weight: np.ndarray, n_measured: int,
               height_m: float, progress: Progress, cancelled: CancelCheck):
@@ -554,155 +1225,57 @@ class GuidedGrowth:
         ``markers[:n_measured]`` are the tree's points, the rest crown-filling
         markers; ``reason`` is "done", "stalled" or "max_iterations" (the
         last two only when measured points are left unreached) or
-        "node_limit" (more than 20 nodes per marker: a safety net).
+        "node_limit" (more than 20 nodes per marker: a safety net).  The
+        iterations run in the compiled :func:`_grow_kernel`, 16 at a time
+        between progress reports and cancel checks.
         """
         l = float(self.step_m)
         dk = float(self.kill_distance_m)
-        cos_apical = np.cos(np.radians(min(self.perception_angle_deg / 2.0, 180.0)))
+        cos_apical = float(np.cos(np.radians(min(self.perception_angle_deg / 2.0, 180.0))))
         half_lat = min(self.perception_angle_deg / 2.0 + self.branching_angle_deg, 180.0)
-        cos_lateral = np.cos(np.radians(half_lat))
+        cos_lateral = float(np.cos(np.radians(half_lat)))
         psi = np.radians(self.branching_angle_deg)
         roll = np.radians(self.roll_angle_deg)
         alpha, beta = float(self.attraction_weight), float(self.tropism)
         di_max = float(self.influence_max_units) * l
+        max_it = int(self.max_iterations)
         node_limit = 20 * len(markers) + 10_000      # a safety net, never reached in practice
-        di_of_t = influence_distance(np.arange(int(self.max_iterations)), height_m, l, self.influence_h0,
+        di_of_t = influence_distance(np.arange(max_it), height_m, l, self.influence_h0,
                                      self.influence_rho0, self.influence_min_units,
                                      self.influence_max_units)
+        markers = np.ascontiguousarray(markers, dtype=np.float64)
+        weight = np.ascontiguousarray(weight, dtype=np.float64)
 
-        active = np.ones(len(markers), dtype=bool)
         # Markers already within d_k of the seeds are taken.
-        d, _ = cKDTree(nodes.pos[:nodes.m]).query(markers, distance_upper_bound=dk)
-        active &= ~np.isfinite(d)
-        stall = 0
-        boost = 1.0
-        it = 0
-        reason = "done"
+        active = ~_near_any_kernel(markers, np.ascontiguousarray(nodes.pos[:nodes.m]), dk)
+
+        cos_tab, sin_tab = _roll_tables(roll, len(nodes.pos) + 2)
+        stall, boost = 0, 1.0
         total = len(markers)
-        for it in range(1, int(self.max_iterations) + 1):
-            if it % 16 == 0:
+        it, code, checked = 1, 0, 0
+        while it <= max_it:
+            if it % 16 == 0 and checked != it:
+                checked = it
                 check(cancelled)
                 report(progress, 0.1 + 0.85 * (1.0 - active.sum() / max(total, 1)), "growing")
-            am = np.flatnonzero(active)
-            if len(am) == 0:
-                break
-            m = nodes.m
-            if m > node_limit:
-                reason = "node_limit"
-                break
-            buds = np.flatnonzero(nodes.bud_free[:m])
-            if len(buds) == 0:
-                reason = "stalled"
-                break
-            di0 = float(di_of_t[it - 1])
-            rho_units = di0 / l
-            di = min(di0 * boost, di_max)
-            bud_tree = cKDTree(nodes.pos[buds])
-            # Only markers with a bud within d_i can be perceived (the growth front).
-            d1, _ = bud_tree.query(markers[am], distance_upper_bound=di)
-            front = am[np.isfinite(d1)]
-            has = np.zeros(0, dtype=bool)
-            if len(front):
-                kq = min(_K_BUDS, len(buds))
-                mp = markers[front]
-                _, j = bud_tree.query(mp, k=kq, distance_upper_bound=di)
-                j = j.reshape(len(front), kq)
-                valid = j < len(buds)
-                b = buds[np.where(valid, j, 0)]                              # (a, kq) node ids
-                vec = mp[:, None, :] - nodes.pos[b]
-                norm = np.sqrt(np.einsum("akx,akx->ak", vec, vec))
-                unit = vec / np.maximum(norm, 1e-12)[..., None]
-                tip = (nodes.n_children[b] == 0) & ~nodes.seed[b]
-                cos_min = np.where(tip, cos_apical, cos_lateral)
-                ok = valid & (norm > 1e-9) & (np.einsum("akx,akx->ak", unit, nodes.heading[b]) > cos_min)
-                has = ok.any(axis=1)
-            if not has.any():
-                # No bud perceives a marker.  The apical bud of the stem keeps growing
-                # (L-system 1, rule 2, with no V_opt) while it is below the highest marker
-                # left: it bridges an unscanned stretch of stem.  A stem is orthotropic, so
-                # instead of the tropism its heading turns halfway to the vertical each unit
-                # (z always rises, so this ends).
-                seed_tips = np.flatnonzero(nodes.leader[:m] & (nodes.n_children[:m] == 0)
-                                           & nodes.bud_free[:m])
-                seed_tips = seed_tips[nodes.pos[seed_tips, 2] < markers[am, 2].max()]
-                if len(seed_tips) and boost == 1.0:
-                    v = _unit(nodes.heading[seed_tips] + _UP)
-                    k = np.arange(1, max(1, int(rho_units)) + 1)
-                    new_pos = (nodes.pos[seed_tips][:, None, :] + (l * k)[None, :, None]
-                               * v[:, None, :]).reshape(-1, 3)
-                    first_id = nodes.m
-                    parent = np.arange(first_id - 1, first_id - 1 + len(new_pos))
-                    parent[::len(k)] = seed_tips
-                    nodes.add(new_pos, np.repeat(v, len(k), axis=0), parent, seed=True, added=True,
-                              leader=True)
-                    nodes.bud_free[seed_tips] = True
-                    d, _ = cKDTree(new_pos).query(markers[am], distance_upper_bound=dk)
-                    active[am[np.isfinite(d)]] = False
-                    continue
-                stall += 1
-                if stall >= _STALL_LIMIT:
-                    reason = "stalled"
-                    break
-                boost *= 1.5
+            hi = min(it - it % 16 + 16, max_it + 1)
+            (nodes.pos, nodes.heading, nodes.parent, nodes.n_children, nodes.seed, nodes.bud_free,
+             nodes.added, nodes.leader, m, stall, boost, it, code) = _grow_kernel(
+                markers, weight, active, nodes.pos, nodes.heading, nodes.parent, nodes.n_children,
+                nodes.seed, nodes.bud_free, nodes.added, nodes.leader, nodes.m, stall, boost, it, hi,
+                di_of_t, cos_tab, sin_tab, l, dk, cos_apical, cos_lateral, float(np.cos(psi)),
+                float(np.sin(psi)), alpha, beta, di_max, node_limit)
+            nodes.m = int(m)
+            if code == 5:
+                cos_tab, sin_tab = _roll_tables(roll, 2 * len(nodes.pos) + 2)
                 continue
-            stall = 0
-            boost = 1.0
-            rows = np.flatnonzero(has)
-            first = ok[rows].argmax(axis=1)
-            bsel = b[rows, first]
-            usel = unit[rows, first]
-            wsel = weight[front[rows]]
-            sums = np.zeros((m, 3))
-            np.add.at(sums, bsel, wsel[:, None] * usel)
-            wsum = np.bincount(bsel, weights=wsel, minlength=m)
-            grow = np.flatnonzero(wsum > 0)
-            v_opt = sums[grow] / wsum[grow, None]                            # Eq. 9, V_opt
-            head = nodes.heading[grow]
-            is_tip = nodes.n_children[grow] == 0
-            # Lateral bud direction: ψ off the heading, towards the markers (φ if they give no azimuth).
-            across = v_opt - (v_opt * head).sum(axis=1, keepdims=True) * head
-            weak = np.linalg.norm(across, axis=1) < 1e-6
-            if weak.any():
-                ref = np.where(np.abs(head[weak, 2:3]) < 0.9, _UP, np.array([1.0, 0.0, 0.0]))
-                e1 = _unit(np.cross(head[weak], ref))
-                e2 = np.cross(head[weak], e1)
-                ang = roll * (grow[weak] + nodes.n_children[grow[weak]])
-                across[weak] = np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2
-            lateral = np.cos(psi) * head + np.sin(psi) * _unit(across)
-            default = np.where(is_tip[:, None], head, lateral)
-            v = default + alpha * v_opt + beta * _DOWN                      # Eq. 9
-            vn = np.linalg.norm(v, axis=1)
-            v = np.where(vn[:, None] > 1e-9, v / np.maximum(vn, 1e-12)[:, None], default)
-            # One growth unit (L-system 1, rule 2): a shoot of up to ρ_t internodes of length l
-            # along V_A, no longer than the distance to the weighted centroid of the markers.
-            csum = np.zeros((m, 3))
-            np.add.at(csum, bsel, wsel[:, None] * markers[front[rows]])
-            reach = np.linalg.norm(csum[grow] / wsum[grow, None] - nodes.pos[grow], axis=1)
-            units = np.clip(np.rint(reach / l), 1, max(1, int(rho_units))).astype(np.int64)
-            k = np.arange(int(units.sum())) - np.repeat(np.cumsum(units) - units, units) + 1
-            owner = np.repeat(np.arange(len(grow)), units)
-            new_pos = nodes.pos[grow][owner] + (l * k)[:, None] * v[owner]
-            first_id = nodes.m
-            parent = np.arange(first_id - 1, first_id - 1 + len(k))
-            parent[k == 1] = grow
-            nodes.add(new_pos, v[owner], parent, leader=(is_tip & nodes.leader[grow])[owner])
-            # A node's buds are spent once it has its apical and one lateral child.
-            nodes.bud_free[grow] = nodes.n_children[grow] < 2
-            # Kill markers within d_k of the new nodes (only the front can be that close
-            # when d_k + shoot length <= d_i).
-            near = front if dk + l * units.max() <= di else am
-            d, _ = cKDTree(new_pos).query(markers[near], distance_upper_bound=dk)
-            active[near[np.isfinite(d)]] = False
-            # Buds with no active marker within the largest influence distance never grow
-            # again (except the stem's apical tip, which may still bridge a gap).
-            if it % 8 == 0 and active.any():
-                mm = nodes.m
-                b_all = np.flatnonzero(nodes.bud_free[:mm] & ~(nodes.leader[:mm] & (nodes.n_children[:mm] == 0)))
-                d, _ = cKDTree(markers[active]).query(nodes.pos[b_all], distance_upper_bound=di_max)
-                nodes.bud_free[b_all[~np.isfinite(d)]] = False
-        else:
+            if code != 0:
+                break
+        reason = {0: "done", 1: "done", 2: "node_limit", 3: "stalled", 4: "stalled"}[int(code)]
+        if code == 0:
+            it = max_it
             if active[:n_measured].any():
                 reason = "max_iterations"
         if reason == "stalled" and not active[:n_measured].any():
             reason = "done"        # only crown-filling markers were left out of reach
-        return it, reason
+        return int(it), reason
