@@ -83,6 +83,7 @@ Steps
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -530,19 +531,19 @@ def _top_voxels(graph: VoxelGraph, tops, params: NormalizedCut):
 
 # --------------------------------------------------------------------------- cuts
 
-def _lobpcg1(L: sp.csr_matrix, x: np.ndarray, y: np.ndarray, maxiter: int,
-             tol: float = 1e-4) -> np.ndarray:
-    """Smallest eigenvector of symmetric ``L`` orthogonal to unit vector ``y``.
+def _lobpcg1(times, x: np.ndarray, y: np.ndarray, maxiter: int, tol: float = 1e-4) -> np.ndarray:
+    """Smallest eigenvector of a symmetric matrix L orthogonal to unit vector ``y``.
 
-    Knyazev's LOBPCG (2001) with block size one and no preconditioner (the
-    normalised Laplacian has a unit diagonal, so Jacobi would change nothing):
-    Rayleigh–Ritz on span{x, residual, previous step} per iteration.  A lean
-    version of :func:`scipy.sparse.linalg.lobpcg`, whose per-call overhead
-    dominates on the many small two-tree problems.
+    ``times(X)`` returns L X for an (n, k) array.  Knyazev's LOBPCG (2001) with
+    block size one and no preconditioner (the normalised Laplacian has a unit
+    diagonal, so Jacobi would change nothing): Rayleigh–Ritz on span{x,
+    residual, previous step} per iteration.  A lean version of
+    :func:`scipy.sparse.linalg.lobpcg`, whose per-call overhead dominates on
+    the many small two-tree problems.
     """
     x = x - y * (y @ x)
     x /= np.linalg.norm(x)
-    ax = L @ x
+    ax = times(x[:, None])[:, 0]
     lam = x @ ax
     p = None
     for _ in range(maxiter):
@@ -555,7 +556,7 @@ def _lobpcg1(L: sp.csr_matrix, x: np.ndarray, y: np.ndarray, maxiter: int,
         keep = np.abs(np.diag(R)) > 1e-10 * np.abs(R[0, 0])
         Q = Q[:, keep]
         Q -= np.outer(y, y @ Q)
-        AQ = L @ Q
+        AQ = times(Q)
         G = Q.T @ AQ
         vals, vecs = np.linalg.eigh((G + G.T) / 2.0)
         c = vecs[:, 0]
@@ -568,76 +569,157 @@ def _lobpcg1(L: sp.csr_matrix, x: np.ndarray, y: np.ndarray, maxiter: int,
     return x
 
 
-def _fiedler(W: sp.csr_matrix, deg: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """Second-smallest generalised eigenvector x of (D - W) x = λ D x.
+class _Pair(NamedTuple):
+    """The union of two regions as a CSR graph of its own (rows in ``nodes`` order)."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    deg: np.ndarray          # D: the row sums of W
+
+
+@njit
+def _pair_subgraph(indptr, indices, data, nodes, local):
+    """``W[nodes][:, nodes]`` (CSR arrays, W's entry order kept) and its row sums, for
+    sorted ``nodes``; ``local`` maps a node to its place in ``nodes`` and is -1
+    elsewhere (it is left as it was found).  Sylva, not in the paper: the
+    bookkeeping of the two-tree sub-problems of Hu et al. §4.1."""
+    m = len(nodes)
+    for t in range(m):
+        local[nodes[t]] = t
+    count = 0
+    for t in range(m):
+        u = nodes[t]
+        for e in range(indptr[u], indptr[u + 1]):
+            if local[indices[e]] >= 0:
+                count += 1
+    sub_ptr = np.zeros(m + 1, dtype=np.int64)
+    sub_idx = np.empty(count, dtype=np.int64)
+    sub_dat = np.empty(count)
+    deg = np.zeros(m)
+    k = 0
+    for t in range(m):
+        u = nodes[t]
+        s = 0.0
+        for e in range(indptr[u], indptr[u + 1]):
+            j = local[indices[e]]
+            if j >= 0:
+                sub_idx[k] = j
+                sub_dat[k] = data[e]
+                s += data[e]
+                k += 1
+        deg[t] = s
+        sub_ptr[t + 1] = k
+    for t in range(m):
+        local[nodes[t]] = -1
+    return sub_ptr, sub_idx, sub_dat, deg
+
+
+@njit
+def _normalised(indptr, indices, data, inv):
+    """The stored values of D^-1/2 W D^-1/2: w_ij / sqrt(d_i) / sqrt(d_j) (``inv`` = 1/sqrt(d))."""
+    out = np.empty(len(data))
+    for i in range(len(indptr) - 1):
+        for e in range(indptr[i], indptr[i + 1]):
+            out[e] = data[e] * inv[i] * inv[indices[e]]
+    return out
+
+
+@njit
+def _laplacian_times(indptr, indices, mdata, X):
+    """(I − M) X for M in CSR with sorted column indices and no diagonal entries
+    (the normalised Laplacian times a block of vectors).  Each row sums its
+    terms in column order, the unit diagonal in its place, exactly as
+    scipy's CSR product of the assembled matrix I − M does."""
+    n, k = X.shape
+    Y = np.zeros((n, k))
+    for i in range(n):
+        for c in range(k):
+            s = 0.0
+            diagonal = False
+            for e in range(indptr[i], indptr[i + 1]):
+                j = indices[e]
+                if not diagonal and j > i:
+                    s += X[i, c]
+                    diagonal = True
+                s += -mdata[e] * X[j, c]
+            if not diagonal:
+                s += X[i, c]
+            Y[i, c] = s
+    return Y
+
+
+def _fiedler(pair: _Pair, start: np.ndarray) -> np.ndarray:
+    """Second-smallest generalised eigenvector x of (D - W) x = λ D x (Hu et al. §4.1, after Shi & Malik).
 
     Computed as the second-smallest eigenvector u of the normalised Laplacian
     L = I - D^-1/2 W D^-1/2 (the same eigenproblem, x = D^-1/2 u; the smallest
     is D^1/2 1) by LOBPCG (:func:`_lobpcg1`, ``FIEDLER_ITERATIONS``) started
-    from ``start``; dense LAPACK for tiny graphs.  D^-1/2 W D^-1/2 is formed
-    by scaling W's stored values in place of two sparse products.
+    from ``start``; dense LAPACK for tiny graphs.  L is never assembled: its
+    products are :func:`_laplacian_times` of W's values scaled in place.
     """
-    n = W.shape[0]
+    deg = pair.deg
+    n = len(deg)
     sq = np.sqrt(deg)
     inv = 1.0 / sq
-    row = np.repeat(np.arange(n), np.diff(W.indptr))
-    M = sp.csr_matrix((W.data * inv[row] * inv[W.indices], W.indices, W.indptr), shape=(n, n))
+    mdata = _normalised(pair.indptr, pair.indices, pair.data, inv)
     if n > 60:
-        L = (sp.identity(n, format="csr") - M).tocsr()
-        u = _lobpcg1(L, start * sq, sq / np.linalg.norm(sq), FIEDLER_ITERATIONS)
+        u = _lobpcg1(lambda X: _laplacian_times(pair.indptr, pair.indices, mdata, np.ascontiguousarray(X)),
+                     start * sq, sq / np.linalg.norm(sq), FIEDLER_ITERATIONS)
     else:
-        _, vecs = scipy.linalg.eigh(M.toarray(), subset_by_index=[n - 2, n - 2],
-                                    check_finite=False)
+        M = np.zeros((n, n))
+        M[np.repeat(np.arange(n), np.diff(pair.indptr)), pair.indices] = mdata
+        _, vecs = scipy.linalg.eigh(M, subset_by_index=[n - 2, n - 2], check_finite=False)
         u = vecs[:, 0]
     return u / sq
 
 
-def _submatrix(W: sp.csr_matrix, nodes: np.ndarray, local: np.ndarray) -> sp.csr_matrix:
-    """``W[nodes][:, nodes]`` for sorted ``nodes``; ``local`` maps a node to its
-    position in ``nodes`` and is -1 elsewhere (it is left as it was found)."""
-    local[nodes] = np.arange(len(nodes))
-    lo = W.indptr[nodes]
-    cnt = W.indptr[nodes + 1] - lo
-    offs = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
-    pos = np.arange(int(cnt.sum())) + offs
-    cols = local[W.indices[pos]]
-    keep = cols >= 0
-    rows = np.repeat(np.arange(len(nodes)), cnt)[keep]
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(nodes)))])
-    local[nodes] = -1
-    return sp.csr_matrix((W.data[pos][keep], cols[keep], indptr), shape=(len(nodes), len(nodes)))
+@njit
+def _split_search(indptr, indices, data, deg, x, a, b, total):
+    """The kernel of :func:`_best_split`: (rank of every node, best t, its NCut; t = -1 when
+    the Fiedler vector ties ``a`` and ``b``)."""
+    n = len(x)
+    xs = -x if x[a] > x[b] else x.copy()
+    order = np.argsort(xs, kind="mergesort")
+    rank = np.empty(n, dtype=np.int64)
+    for t in range(n):
+        rank[order[t]] = t
+    # cut(t) with A = the first t nodes (t = 1..n-1): the edges with lo < t <= hi
+    add = np.zeros(n + 1)
+    sub = np.zeros(n + 1)
+    for i in range(n):
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if i < j:
+                r1, r2 = rank[i], rank[j]
+                add[min(r1, r2) + 1] += data[e]
+                sub[max(r1, r2) + 1] += data[e]
+    t_lo, t_hi = rank[a] + 1, rank[b]
+    if t_hi < t_lo:
+        return rank, -1, np.inf
+    cut = 0.0       # running sums in numpy's cumsum order
+    assoc = 0.0
+    best, best_ncut = -1, np.inf
+    for t in range(n - 1):
+        cut += add[t + 1] - sub[t + 1]
+        assoc += deg[order[t]]
+        if t_lo - 1 <= t < t_hi:
+            ncut = cut / assoc + cut / max(total - assoc, 1e-300)
+            if best < 0 or ncut < best_ncut:
+                best, best_ncut = t, ncut
+    return rank, best, best_ncut
 
 
-def _best_split(W: sp.csr_matrix, deg: np.ndarray, x: np.ndarray, a: int, b: int):
+def _best_split(pair: _Pair, x: np.ndarray, a: int, b: int):
     """Shi & Malik's threshold search on the sorted Fiedler vector: the split with
     the smallest NCut (Eq. 1) that puts node ``a`` in A and node ``b`` in B.
 
     Returns (boolean mask of A, NCut of that split)."""
-    n = len(x)
-    if x[a] > x[b]:
-        x = -x
-    order = np.argsort(x, kind="stable")
-    rank = np.empty(n, dtype=np.int64)
-    rank[order] = np.arange(n)
-    coo = W.tocoo()
-    up = coo.row < coo.col
-    r1 = rank[coo.row[up]]
-    r2 = rank[coo.col[up]]
-    lo = np.minimum(r1, r2)
-    hi = np.maximum(r1, r2)
-    w = coo.data[up]
-    # cut(t) with A = the first t nodes (t = 1..n-1): the edges with lo < t <= hi
-    diff = (np.bincount(lo + 1, weights=w, minlength=n + 1)
-            - np.bincount(hi + 1, weights=w, minlength=n + 1))
-    cut = np.cumsum(diff)[1:n]
-    assoc_a = np.cumsum(deg[order])[:n - 1]
-    total = deg.sum()
-    ncut = cut / assoc_a + cut / np.maximum(total - assoc_a, 1e-300)
-    t_lo, t_hi = rank[a] + 1, rank[b]
-    if t_hi < t_lo:  # pragma: no cover - ties in x
+    rank, best, ncut = _split_search(pair.indptr, pair.indices, pair.data, pair.deg, x, a, b,
+                                     float(pair.deg.sum()))
+    if best < 0:  # pragma: no cover - ties in x
         return rank <= rank[a], float("inf")
-    best = t_lo - 1 + int(np.argmin(ncut[t_lo - 1:t_hi]))
-    return rank < best + 1, float(ncut[best])
+    return rank < best + 1, float(ncut)
 
 
 def _geodesic_partition(graph: VoxelGraph, top_voxel: np.ndarray, climb: float) -> np.ndarray:
@@ -660,13 +742,18 @@ def _nearest_source(indptr, indices, w, z, climb, sources):
 
     An indexed binary heap with decrease-key (numba, O(n) memory); scipy's
     ``dijkstra(min_only=True)`` gives the same partition but its Fibonacci
-    heap is twice as slow on graphs of millions of voxels.  A node reached by
-    two sources at exactly the same cost keeps the first; a voxel holding two
-    sources keeps the later one."""
+    heap is twice as slow on graphs of millions of voxels.  The heap keeps
+    each entry's distance beside its node (``key``), so sifting reads the
+    heap's own contiguous memory instead of ``dist`` at random voxels (the
+    same comparisons, so the same partition, but a tile of millions of
+    voxels no longer waits on cache misses).  A node reached by two sources
+    at exactly the same cost keeps the first; a voxel holding two sources
+    keeps the later one."""
     n = len(indptr) - 1
     dist = np.full(n, np.inf)
     owner = np.full(n, -1, dtype=np.int64)
-    heap = np.empty(n, dtype=np.int64)      # nodes, a binary heap on dist
+    heap = np.empty(n, dtype=np.int64)      # nodes, a binary heap on their distance
+    key = np.empty(n)                       # key[i] = dist[heap[i]]
     pos = np.full(n, -1, dtype=np.int64)    # place in heap; -1 never queued, -2 settled
     size = 0
     for k in range(len(sources)):
@@ -675,6 +762,7 @@ def _nearest_source(indptr, indices, w, z, climb, sources):
         if pos[s] == -1:
             dist[s] = 0.0
             heap[size] = s
+            key[size] = 0.0
             pos[s] = size
             size += 1
     while size:
@@ -683,21 +771,23 @@ def _nearest_source(indptr, indices, w, z, climb, sources):
         size -= 1
         if size:                             # last node to the root, sift down
             x = heap[size]
-            dx = dist[x]
+            dx = key[size]
             i = 0
             while True:
                 c = 2 * i + 1
                 if c >= size:
                     break
-                if c + 1 < size and dist[heap[c + 1]] < dist[heap[c]]:
+                if c + 1 < size and key[c + 1] < key[c]:
                     c += 1
-                if dist[heap[c]] < dx:
+                if key[c] < dx:
                     heap[i] = heap[c]
+                    key[i] = key[c]
                     pos[heap[i]] = i
                     i = c
                 else:
                     break
             heap[i] = x
+            key[i] = dx
             pos[x] = i
         du = dist[u]
         zu = z[u]
@@ -716,13 +806,15 @@ def _nearest_source(indptr, indices, w, z, climb, sources):
                     size += 1
                 while i > 0:                 # sift up
                     p = (i - 1) >> 1
-                    if dist[heap[p]] > nd:
+                    if key[p] > nd:
                         heap[i] = heap[p]
+                        key[i] = key[p]
                         pos[heap[i]] = i
                         i = p
                     else:
                         break
                 heap[i] = v
+                key[i] = nd
                 pos[v] = i
     return owner
 
@@ -732,28 +824,55 @@ def _pair_ncut(graph: VoxelGraph, region: np.ndarray, pairs: np.ndarray, k: int)
 
     For regions p, q: cut = w(p, q); the association of p within the union is
     2 w(p, p) + w(p, q) (every internal edge counts from both ends)."""
-    a, b = graph.edges[:, 0], graph.edges[:, 1]
-    w = graph.weights
-    ra, rb = region[a], region[b]
-    ok = (ra >= 0) & (rb >= 0)
-    ra, rb, w = ra[ok], rb[ok], w[ok]
-    inner = np.bincount(ra[ra == rb], weights=w[ra == rb], minlength=k)
-    lo, hi = np.minimum(ra, rb), np.maximum(ra, rb)
-    between = lo != hi
-    key = lo[between] * k + hi[between]
+    inner, key, wb, zb = _region_edges(graph.edges[:, 0], graph.edges[:, 1], graph.weights, region,
+                                       np.ascontiguousarray(graph.xyz[:, 2]), k)
     ukey, inv = np.unique(key, return_inverse=True)
-    cut_u = np.bincount(inv, weights=w[between], minlength=len(ukey))
+    cut_u = np.bincount(inv, weights=wb, minlength=len(ukey))
     pos = np.searchsorted(ukey, pairs[:, 0] * k + pairs[:, 1])
     cut = cut_u[pos]
     vol_p = 2.0 * inner[pairs[:, 0]] + cut
     vol_q = 2.0 * inner[pairs[:, 1]] + cut
     ncut = cut / np.maximum(vol_p, 1e-300) + cut / np.maximum(vol_q, 1e-300)
     # saddle: the highest boundary edge (the lower of its two voxel heights)
-    z = graph.xyz[:, 2]
-    zb = np.minimum(z[a[ok]], z[b[ok]])[between]
-    top_z = np.full(len(ukey), -np.inf)
-    np.maximum.at(top_z, inv, zb)
-    return ncut, top_z[pos]
+    return ncut, _group_max(inv, zb, len(ukey))[pos]
+
+
+@njit
+def _region_edges(a, b, w, region, z, k):
+    """One pass over the edges (a, b, w) for :func:`_pair_ncut`: the weight inside each
+    region (summed in edge order), and for the edges between two regions p < q the
+    key p·k + q, the weight and the lower end's height (in edge order)."""
+    inner = np.zeros(k)
+    n = 0
+    for e in range(len(a)):
+        ra, rb = region[a[e]], region[b[e]]
+        if ra >= 0 and rb >= 0:
+            if ra == rb:
+                inner[ra] += w[e]
+            else:
+                n += 1
+    key = np.empty(n, dtype=np.int64)
+    wb = np.empty(n)
+    zb = np.empty(n)
+    t = 0
+    for e in range(len(a)):
+        ra, rb = region[a[e]], region[b[e]]
+        if ra >= 0 and rb >= 0 and ra != rb:
+            key[t] = min(ra, rb) * k + max(ra, rb)
+            wb[t] = w[e]
+            zb[t] = min(z[a[e]], z[b[e]])
+            t += 1
+    return inner, key, wb, zb
+
+
+@njit
+def _group_max(group, values, n):
+    """Per group 0..n-1 the largest of its ``values`` (-inf when empty); ``np.maximum.at`` without its overhead."""
+    out = np.full(n, -np.inf)
+    for e in range(len(group)):
+        if values[e] > out[group[e]]:
+            out[group[e]] = values[e]
+    return out
 
 
 def _find(parent: np.ndarray, i: int) -> int:
@@ -811,16 +930,14 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
                 continue   # the start boundary is already a near-perfect cut
             nodes = np.sort(np.concatenate([order[starts[p + 1]:starts[p + 2]],
                                             order[starts[q + 1]:starts[q + 2]]]))
-            sub = _submatrix(W, nodes, local)
-            row_of = np.repeat(np.arange(len(nodes)), np.diff(sub.indptr))
-            deg = np.bincount(row_of, weights=sub.data, minlength=len(nodes))
-            if (deg <= 0).any():
+            pair = _Pair(*_pair_subgraph(W.indptr, W.indices, W.data, nodes, local))
+            if (pair.deg <= 0).any():
                 continue
             ia = int(np.searchsorted(nodes, top_voxel[p]))
             ib = int(np.searchsorted(nodes, top_voxel[q]))
             start = np.where(region[nodes] == p, -1.0, 1.0)
-            x = _fiedler(sub, deg, start)
-            side_a, ncut = _best_split(sub, deg, x, ia, ib)
+            x = _fiedler(pair, start)
+            side_a, ncut = _best_split(pair, x, ia, ib)
             best = min(ncut, ncut_now)   # the start boundary is a candidate cut too
             low = min(top_height[p], top_height[q])
             dip = (low - saddle[i]) / low
