@@ -361,3 +361,36 @@ def test_segmentation_unchanged_by_the_kernels(stand, monkeypatch):
     ref = N.NormalizedCut().segment(cloud)
     assert len(np.unique(got)) > 15
     np.testing.assert_array_equal(got, ref)
+
+
+def test_clean_kernels_equal_scipy(stand):
+    """The fragment test (union-find) and the attach search (grid) give what connected_components
+    and cKDTree.sparse_distance_matrix gave: the same mask, the same pairs and distances."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    _, graph, tops, region, _, _ = stand
+    a, b = graph.edges[:, 0], graph.edges[:, 1]
+    rng = np.random.default_rng(7)
+    vlabel = np.where(region >= 0, region + 1, 0)
+    vlabel[rng.random(graph.n) < 0.05] = 0                       # holes cut fragments off
+    top_id = np.arange(1, len(tops) + 1)
+    top_id[::7] += 1                                             # some tops not their voxel's id
+    same = (vlabel[a] == vlabel[b]) & (vlabel[a] > 0)
+    G = sp.coo_matrix((np.ones(same.sum()), (a[same], b[same])), shape=(graph.n, graph.n))
+    _, frag = connected_components(G, directed=False)
+    good = np.zeros(frag.max() + 1, dtype=bool)
+    good[frag[tops]] = vlabel[tops] == top_id
+    got = N._joined_to_top(a, b, vlabel, tops.astype(np.int64), top_id)
+    assert 0.3 < got.mean() < 0.95
+    np.testing.assert_array_equal(got, good[frag])
+
+    free = np.flatnonzero(vlabel == 0)
+    for r in (0.7, 2.0):
+        near = cKDTree(graph.xyz[free]).sparse_distance_matrix(cKDTree(graph.xyz), r, output_type="ndarray")
+        ref = (free[near["i"]], near["j"].astype(np.int64), near["v"])
+        mine = N._pairs_within(graph.xyz, free, r)
+        o1, o2 = np.lexsort(ref[::-1]), np.lexsort(mine[::-1])
+        assert len(ref[0]) > 100
+        for x, y in zip(ref, mine):
+            np.testing.assert_array_equal(x[o1], y[o2])

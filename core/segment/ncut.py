@@ -88,7 +88,6 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..cloud import PointCloud
@@ -965,6 +964,119 @@ def _cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
                   0.0, params.attach_m)
 
 
+@njit
+def _pairs_within(xyz, query, r):
+    """Every (query[i], j, distance) with point j within ``r`` of point query[i] (d² <= r²,
+    d = sqrt((dx² + dy²) + dz²): the pairs and values of ``cKDTree.sparse_distance_matrix``),
+    found on a uniform grid of cells of edge >= r (counted, then filled).  Sylva, not in
+    the paper."""
+    n = xyz.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = xyz[0, a]
+        hi[a] = xyz[0, a]
+    for i in range(n):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    cell = max(r, 1e-9)
+    while True:
+        gx = int((hi[0] - lo[0]) / cell) + 1
+        gy = int((hi[1] - lo[1]) / cell) + 1
+        gz = int((hi[2] - lo[2]) / cell) + 1
+        if gx * gy * gz <= 4 * n + 4096:
+            break
+        cell *= 1.5
+    ncell = gx * gy * gz
+    cid = np.empty(n, dtype=np.int64)
+    start = np.zeros(ncell + 1, dtype=np.int64)
+    for i in range(n):
+        cx = min(int((xyz[i, 0] - lo[0]) / cell), gx - 1)
+        cy = min(int((xyz[i, 1] - lo[1]) / cell), gy - 1)
+        cz = min(int((xyz[i, 2] - lo[2]) / cell), gz - 1)
+        cid[i] = (cx * gy + cy) * gz + cz
+        start[cid[i] + 1] += 1
+    for c in range(ncell):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    member = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        member[fill[cid[i]]] = i
+        fill[cid[i]] += 1
+    r2 = r * r
+    out_i = np.empty(0, dtype=np.int64)
+    out_j = np.empty(0, dtype=np.int64)
+    out_d = np.empty(0)
+    for rnd in range(2):            # count, then fill
+        k = 0
+        for q in range(len(query)):
+            p = query[q]
+            px, py, pz = xyz[p, 0], xyz[p, 1], xyz[p, 2]
+            c = cid[p]
+            cx, cy, cz = c // (gy * gz), (c // gz) % gy, c % gz
+            for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
+                for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
+                    for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
+                        g = (ix * gy + iy) * gz + iz
+                        for t in range(start[g], start[g + 1]):
+                            j = member[t]
+                            dx = px - xyz[j, 0]
+                            dy = py - xyz[j, 1]
+                            dz = pz - xyz[j, 2]
+                            d2 = (dx * dx + dy * dy) + dz * dz
+                            if d2 <= r2:
+                                if rnd == 1:
+                                    out_i[k] = p
+                                    out_j[k] = j
+                                    out_d[k] = np.sqrt(d2)
+                                k += 1
+        if rnd == 0:
+            out_i = np.empty(k, dtype=np.int64)
+            out_j = np.empty(k, dtype=np.int64)
+            out_d = np.empty(k)
+    return out_i, out_j, out_d
+
+
+@njit
+def _joined_to_top(a, b, vlabel, top_voxel, top_id):
+    """Per voxel: is it joined to its tree's top through voxels of that tree?
+
+    The components of the edges (a, b) whose ends share a label > 0 (union-find);
+    a component is good when it holds a top voxel whose label is that top's id
+    (of several tops in one component, the last one listed decides, as numpy's
+    fancy assignment does).  Sylva, not in the paper: the fragment test of
+    :func:`_clean`."""
+    m = len(vlabel)
+    root = np.arange(m)
+    for e in range(len(a)):
+        u, v = a[e], b[e]
+        if vlabel[u] > 0 and vlabel[u] == vlabel[v]:
+            while root[u] != u:
+                root[u] = root[root[u]]
+                u = root[u]
+            while root[v] != v:
+                root[v] = root[root[v]]
+                v = root[v]
+            if u != v:
+                if u < v:
+                    root[v] = u
+                else:
+                    root[u] = v
+    for i in range(m):                  # flatten: root[i] is i's representative
+        r = i
+        while root[r] != r:
+            r = root[r]
+        root[i] = r
+    good = np.zeros(m, dtype=np.bool_)
+    for t in range(len(top_voxel)):
+        good[root[top_voxel[t]]] = vlabel[top_voxel[t]] == top_id[t]
+    out = np.empty(m, dtype=np.bool_)
+    for i in range(m):
+        out[i] = good[root[i]]
+    return out
+
+
 def _clean(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
            top_id: np.ndarray, top_height: np.ndarray, tolerance_m: float,
            attach_m: float) -> np.ndarray:
@@ -988,12 +1100,7 @@ def _clean(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
     # a given top may lie a little below its voxel's mean (another source or DTM)
     height_of[top_id] = np.maximum(top_height, z[top_voxel])
     vlabel = np.where(z <= height_of[vlabel] + tolerance_m, vlabel, 0)
-    same = (vlabel[a] == vlabel[b]) & (vlabel[a] > 0)
-    G = sp.coo_matrix((np.ones(same.sum()), (a[same], b[same])), shape=(m, m))
-    _, frag = connected_components(G, directed=False)
-    good = np.zeros(frag.max() + 1, dtype=bool)
-    good[frag[top_voxel]] = vlabel[top_voxel] == top_id
-    vlabel = np.where(good[frag], vlabel, 0)
+    vlabel = np.where(_joined_to_top(a, b, vlabel, top_voxel, top_id), vlabel, 0)
     # flood the unlabelled voxels from labelled neighbours, strongest edge first
     free_a = vlabel[a] == 0            # only edges into unlabelled voxels matter
     free_b = vlabel[b] == 0
@@ -1018,9 +1125,7 @@ def _clean(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
     if not (len(free) and attach_m > 0 and (vlabel > 0).any()):
         return vlabel
     # every voxel within attach_m of a free one, found once (one tree of all voxels)
-    near = cKDTree(graph.xyz[free]).sparse_distance_matrix(
-        cKDTree(graph.xyz), attach_m, output_type="ndarray")
-    fi, vj, dist = free[near["i"]], near["j"].astype(np.int64), near["v"]
+    fi, vj, dist = _pairs_within(graph.xyz, free, float(attach_m))
     order = np.lexsort((vj, dist, fi))          # per free voxel, nearest first
     fi, vj = fi[order], vj[order]
     for _ in range(ATTACH_ROUNDS):
