@@ -348,6 +348,10 @@ def _remap_las(path, mapping: dict) -> None:
     write_las(path, cloud.with_attrs(treeID=tid.astype(np.int32)))
 
 
+#: Parts are read through a memory map of up to this many bytes each (SQLite's mmap_size), not read() calls.
+MERGE_MMAP_BYTES = 1 << 30
+
+
 def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
     """Concatenate the layers of per-tile GeoPackages into one at ``path``, table by table in SQL.
 
@@ -356,16 +360,18 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
     pipeline and merged here like the others.
     """
+    from .io.gpkg import new_file_pragmas
+
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
     with atomic_path(path) as tmp:
         con = sqlite3.connect(tmp)
         try:
+            # a temporary file renamed at the end: no journal, no fsync per part, larger pages
+            new_file_pragmas(con)
+            con.execute(f"PRAGMA mmap_size = {MERGE_MMAP_BYTES}")   # parts attached later are read mapped too
             con.execute("PRAGMA application_id = 1196444487")
             con.execute("PRAGMA user_version = 10200")
-            # a temporary file renamed at the end: no journal, no fsync per part
-            con.execute("PRAGMA journal_mode = OFF")
-            con.execute("PRAGMA synchronous = OFF")
             created = {}
             for k, part in enumerate(parts):
                 con.execute("ATTACH DATABASE ? AS part", (str(part),))

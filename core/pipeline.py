@@ -469,8 +469,10 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         if models_table is not None:
             models_3d = models_table(models, frame)
         del models, trees
+    from .table import point_layer   # points as WKB straight from the arrays, no shapely objects
+
     tables.append(VectorTable("trees", "none", None, columns, crs))
-    tables.append(VectorTable("tree_tops", "point", shapely.points(np.column_stack([m.x, m.y, m.top_z])),
+    tables.append(point_layer("tree_tops", np.column_stack([m.x, m.y, m.top_z]),
                               {"tree_id": m.tree_id, "height": m.height}, crs))
     tables.append(VectorTable("crowns", "polygon", m.crowns,
                               {"tree_id": m.tree_id, "height": m.height, "top_z": m.top_z,
@@ -478,7 +480,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     height = work.attrs["height"]
     for layer, mask in (("crown_points", (own_labels > 0) & ~m.is_stem), ("stem_points", m.is_stem)):
         idx = np.flatnonzero(mask)
-        tables.append(VectorTable(layer, "point", shapely.points(work.xyz[idx]),
+        tables.append(point_layer(layer, work.xyz[idx],
                                   {"tree_id": own_labels[idx].astype(np.int64), "height": height[idx]}, crs))
     if skeletons is not None:
         tables.append(skeletons)

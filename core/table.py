@@ -2,7 +2,8 @@
 
 Geometries are shapely objects, or ISO WKB ``bytes`` (little endian) for
 measured (M) geometries, which shapely cannot hold, and for layers encoded
-straight from arrays (``wkb=True``: the triangles of 3D models).  Core functions return VectorTables; the front ends write them: the CLI to a
+straight from arrays (``wkb=True``: the triangles of 3D models, the points
+of :func:`point_layer`).  Core functions return VectorTables; the front ends write them: the CLI to a
 GeoPackage (:mod:`sylva.core.io.gpkg`), the Processing layer to a QGIS
 feature sink (so any format QGIS supports, and temporary layers inside a
 Graphical Modeler graph).  Column dtypes decide field types: integers ->
@@ -86,3 +87,36 @@ def multilinestring_zm_wkb(parts) -> bytes:
         chunks.append(struct.pack("<BII", 1, 3002, len(coords)))
         chunks.append(coords.tobytes())
     return b"".join(chunks)
+
+
+#: One ISO WKB Point Z (little endian): byte order, type 1001, x, y, z.
+_POINT_Z = np.dtype([("order", "u1"), ("type", "<u4"), ("xyz", "<f8", (3,))])
+
+
+def point_z_wkb(xyz) -> np.ndarray:
+    """ISO WKB Point Z ``bytes`` (object array) per row of an (n, 3) array of finite x, y, z.
+
+    The bytes of ``shapely.to_wkb(shapely.points(xyz), output_dimension=3,
+    flavor="iso", byte_order=1)``, encoded from the array (Sylva, not in the
+    paper): a tile's ~10^5 crown points are too many to build as shapely objects.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    rec = np.empty(len(xyz), dtype=_POINT_Z)
+    rec["order"], rec["type"], rec["xyz"] = 1, 1001, xyz
+    return np.array(rec.view(f"V{_POINT_Z.itemsize}").tolist(), dtype=object).reshape(-1)
+
+
+def point_layer(name: str, xyz, columns: dict, crs=None) -> VectorTable:
+    """A Point Z layer of the rows of ``xyz`` (n, 3), as WKB (``wkb=True``) with its extent.
+
+    The same GeoPackage rows as a layer of ``shapely.points(xyz)``; an array
+    with a non-finite coordinate gets those shapely points (their WKB and
+    bounds treat NaN as GEOS does).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(xyz).all():
+        import shapely
+
+        return VectorTable(name, "point", shapely.points(xyz), columns, crs)
+    extent = (*xyz[:, :2].min(axis=0).tolist(), *xyz[:, :2].max(axis=0).tolist()) if len(xyz) else None
+    return VectorTable(name, "point", point_z_wkb(xyz), columns, crs, wkb=True, extent=extent)
