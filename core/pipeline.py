@@ -375,8 +375,6 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     warnings, files.  Raises :class:`SylvaError` (or anything) on failure; the
     catalog retries once and reports.
     """
-    import shapely
-
     from .atomic import atomic_path, atomic_write_bytes
     from .io.gpkg import write_gpkg
     from .io.las import write_las
@@ -384,7 +382,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     from .noise import noise_mask
     from .progress import check, report
     from .segment import segment_trees
-    from .table import VectorTable
+    from .table import VectorTable, point_layer
     from .terrain import SMRF, normalize
     from .tops import FixedWindow, TreeTops, find_tree_tops
 
@@ -436,6 +434,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     if opts.reconstruct and len(m):
         report(progress, 0.7, f"{job.name}: modelling {len(m)} trees")
         from .export.gltf import write_glb
+        from .export.gpkg3d import models_table
         from .export.model import ExportFrame, TreeModel
         from .export.tiles3d import write_tileset
         from .forest import ModelOptions, model_trees, skeleton_table
@@ -453,24 +452,16 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
                             t.wood, t.leaves, {k: columns[k][i] for k in columns}, billboard=boards[i])
                   for i, t in enumerate(trees)]
         frame = ExportFrame.from_cloud(work)
-        encoded = {}   # meshes encoded once for the tile's GLB and its tileset
+        encoded = {}   # meshes encoded and checked once for the tile's GLB, its tileset and its 3D layer
         write_glb(models, paths["glb"], frame, cancelled=cancelled, cache=encoded)
         tileset_dir = paths["tileset"]
         tileset_dir.parent.mkdir(parents=True, exist_ok=True)
         write_tileset(models, tileset_dir, frame, cancelled=cancelled, cache=encoded)
-        del encoded
         files["glb"] = str(paths["glb"])
         files["tileset"] = str(tileset_dir / "tileset.json")
         skeletons = skeleton_table(trees, work, crs)
-        try:  # the QGIS-native 3D layer (core/export/gpkg3d.py), merged like the other layers
-            from .export.gpkg3d import models_table
-        except ImportError:
-            models_table = None
-        if models_table is not None:
-            models_3d = models_table(models, frame)
-        del models, trees
-    from .table import point_layer   # points as WKB straight from the arrays, no shapely objects
-
+        models_3d = models_table(models, frame, cache=encoded)   # the QGIS-native 3D layer
+        del models, trees, encoded
     tables.append(VectorTable("trees", "none", None, columns, crs))
     tables.append(point_layer("tree_tops", np.column_stack([m.x, m.y, m.top_z]),
                               {"tree_id": m.tree_id, "height": m.height}, crs))

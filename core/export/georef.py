@@ -44,6 +44,7 @@ GeographicLib supplies what pyproj has no call for: :func:`geodesic_distance`
 from __future__ import annotations
 
 import math
+import threading
 import warnings
 from typing import Optional
 
@@ -59,6 +60,43 @@ __all__ = ["Georef", "enu_to_ecef_matrix", "geodesic_distance", "Z_UP_TO_Y_UP", 
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1.0]])
 #: Its inverse, which 3D Tiles clients apply to glTF content ("glTF transforms", +90 deg about x).
 Y_UP_TO_Z_UP = Z_UP_TO_Y_UP.T.copy()
+
+
+_LOCAL = threading.local()
+_MEMO_SIZE = 32
+
+
+def _memo(key, make):
+    """``make()``, memoised per thread under ``key`` (at most ``_MEMO_SIZE`` entries).
+
+    Every tile's exports build the same few pyproj objects (a transformer takes ~5 ms); pyproj
+    objects are not shared between threads.  Sylva, not in the paper.
+    """
+    memo = getattr(_LOCAL, "memo", None)
+    if memo is None:
+        memo = _LOCAL.memo = {}
+    if key not in memo:
+        if len(memo) >= _MEMO_SIZE:
+            memo.clear()
+        memo[key] = make()
+    return memo[key]
+
+
+def _epsg(code: int):
+    """``pyproj.CRS.from_epsg(code)`` (memoised, :func:`_memo`)."""
+    from pyproj import CRS
+
+    return _memo(("epsg", code), lambda: CRS.from_epsg(code))
+
+
+def _transformer(src, dst):
+    """``pyproj.Transformer.from_crs(src, dst, always_xy=True)``, memoised (:func:`_memo`) by the CRSs' WKT."""
+    from pyproj import Transformer
+
+    key = ("transformer", src.to_wkt(), dst.to_wkt())
+    if key[1] is None or key[2] is None:
+        return Transformer.from_crs(src, dst, always_xy=True)
+    return _memo(key, lambda: Transformer.from_crs(src, dst, always_xy=True))
 
 
 def enu_rotation(lon_deg: float, lat_deg: float) -> np.ndarray:
@@ -100,7 +138,7 @@ class Georef:
         self.scale = np.array([self.units.horizontal_m] * 2 + [self.units.vertical_m])
         self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
         self.vertical = "none (local frame)"
-        self._fwd = self._inv = None
+        self._fwd = None
         self._in_scale = np.ones(3)
         if self.crs is not None and self.crs.geodetic_crs is not None:
             self._set_up_geodetic()
@@ -116,7 +154,6 @@ class Georef:
 
     # ------------------------------------------------------------------ set-up
     def _set_up_geodetic(self):
-        from pyproj import CRS, Transformer
         from pyproj.transformer import TransformerGroup
 
         crs = self.crs
@@ -125,7 +162,7 @@ class Georef:
         if crs.is_geographic and not crs.is_projected and len(crs.axis_info) < 3 \
                 and math.isnan(self.units.horizontal_m):
             raise CRSError(f"{crs.name}: geographic CRS; tree bases must be in a projected CRS")
-        wgs84 = CRS.from_epsg(4979)
+        wgs84 = _epsg(4979)
         src3d = None
         if crs.is_compound:
             horizontal = next((s for s in crs.sub_crs_list if not s.is_vertical), None)
@@ -158,7 +195,8 @@ class Georef:
             src3d = crs
             self.vertical = "ellipsoidal (the CRS is 3D)"
         else:
-            src3d = crs.to_3d()
+            wkt = crs.to_wkt()
+            src3d = crs.to_3d() if wkt is None else _memo(("to_3d", wkt), crs.to_3d)
             self.vertical = "ellipsoidal (assumed; the CRS has no vertical component)"
         axes = src3d.axis_info
         h_fac = axes[0].unit_conversion_factor
@@ -168,10 +206,9 @@ class Georef:
             v_fac = vert.axis_info[0].unit_conversion_factor
         # source units -> the units PROJ expects for src3d
         self._in_scale = np.array([self.units.horizontal_m / h_fac] * 2 + [self.units.vertical_m / v_fac])
-        self._fwd = Transformer.from_crs(src3d, wgs84, always_xy=True)
-        self._inv = Transformer.from_crs(wgs84, src3d, always_xy=True)
-        self._to_ecef = Transformer.from_crs(wgs84, CRS.from_epsg(4978), always_xy=True)
-        self._from_ecef = Transformer.from_crs(CRS.from_epsg(4978), wgs84, always_xy=True)
+        self._src3d, self._wgs84, self._ecef = src3d, wgs84, _epsg(4978)
+        self._fwd = _transformer(src3d, wgs84)
+        self._to_ecef = _transformer(wgs84, self._ecef)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -232,7 +269,7 @@ class Georef:
     def geodetic_to_source(self, llh) -> np.ndarray:
         self.require_geodetic("geodetic coordinates")
         q = np.asarray(llh, dtype=np.float64).reshape(-1, 3)
-        x, y, z = self._inv.transform(q[:, 0], q[:, 1], q[:, 2])
+        x, y, z = _transformer(self._wgs84, self._src3d).transform(q[:, 0], q[:, 1], q[:, 2])
         return np.column_stack([x, y, z]) / self._in_scale
 
     def geodetic_to_ecef(self, llh) -> np.ndarray:
@@ -242,7 +279,7 @@ class Georef:
 
     def ecef_to_geodetic(self, ecef) -> np.ndarray:
         q = np.asarray(ecef, dtype=np.float64).reshape(-1, 3)
-        lon, lat, h = self._from_ecef.transform(q[:, 0], q[:, 1], q[:, 2])
+        lon, lat, h = _transformer(self._ecef, self._wgs84).transform(q[:, 0], q[:, 1], q[:, 2])
         return np.column_stack([lon, lat, h])
 
     def ecef_to_enu(self, ecef) -> np.ndarray:

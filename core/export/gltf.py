@@ -40,14 +40,16 @@ import json
 import re
 import struct
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import List, NamedTuple, Optional, Sequence
 
 import numpy as np
 
 from ..errors import InputError
+from ..jit import njit
 from ..progress import check, report
 from .georef import Georef, Z_UP_TO_Y_UP, default_origin, write_sidecars
-from .model import ExportFrame, TreeModel, atomic_write_bytes, check_models
+from .model import (ExportFrame, TreeModel, atomic_write_bytes, cached, cached_attributes, check_models,
+                    mesh_arrays)
 
 __all__ = ["write_glb", "glb_bytes", "read_glb", "node_world_positions", "uses_billboard", "BARK_RGBA",
            "SYLVA_GENERATOR"]
@@ -69,32 +71,59 @@ def leaf_png(shape: str, size: int = 256) -> bytes:
     return _png_bytes(np.ascontiguousarray(leaf_texture(shape, size), dtype=np.uint8))
 
 
-def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals, unit length (up for isolated/degenerate vertices)."""
-    v = vertices.astype(np.float64)
-    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    # sum of the face normals at each corner, corner 0 of all faces first (as np.add.at per corner)
-    corner = faces.T.ravel()
-    n = np.empty_like(v)
-    for c in range(3):
-        n[:, c] = np.bincount(corner, weights=np.tile(fn[:, c], 3), minlength=len(v))
-    length = np.linalg.norm(n, axis=1)
-    bad = length < 1e-12
-    n[bad] = (0.0, 0.0, 1.0)
-    length[bad] = 1.0
-    return (n / length[:, None]).astype(np.float32)
+@njit
+def _normals_kernel(pos, faces, voff, foff):
+    """Unit area-weighted vertex normals of the meshes packed in ``pos`` (float32 (V, 3)) and ``faces``.
+
+    Mesh ``k`` owns the vertices ``voff[k]:voff[k+1]`` and the faces ``foff[k]:foff[k+1]`` (indices
+    local to the mesh).  The numbers of the numpy formulation: float64 face normals as ``np.cross``,
+    summed per vertex over corner 0 of every face of the mesh, then corner 1, then corner 2 (the
+    order of ``np.bincount`` over ``faces.T.ravel()``), divided by their length as
+    ``np.linalg.norm`` computes it; up for isolated/degenerate vertices.  Sylva, not in the paper.
+    """
+    out = np.empty((len(pos), 3), dtype=np.float32)
+    for k in range(len(voff) - 1):
+        v0, f0 = voff[k], foff[k]
+        fn = np.empty((foff[k + 1] - f0, 3))
+        for j in range(len(fn)):
+            a, b, d = faces[f0 + j, 0] + v0, faces[f0 + j, 1] + v0, faces[f0 + j, 2] + v0
+            ux = np.float64(pos[b, 0]) - np.float64(pos[a, 0])
+            uy = np.float64(pos[b, 1]) - np.float64(pos[a, 1])
+            uz = np.float64(pos[b, 2]) - np.float64(pos[a, 2])
+            wx = np.float64(pos[d, 0]) - np.float64(pos[a, 0])
+            wy = np.float64(pos[d, 1]) - np.float64(pos[a, 1])
+            wz = np.float64(pos[d, 2]) - np.float64(pos[a, 2])
+            fn[j, 0] = uy * wz - uz * wy
+            fn[j, 1] = uz * wx - ux * wz
+            fn[j, 2] = ux * wy - uy * wx
+        n = np.zeros((voff[k + 1] - v0, 3))
+        for c in range(3):
+            for j in range(len(fn)):
+                t = faces[f0 + j, c]
+                n[t, 0] += fn[j, 0]
+                n[t, 1] += fn[j, 1]
+                n[t, 2] += fn[j, 2]
+        for t in range(len(n)):
+            x, y, z = n[t, 0], n[t, 1], n[t, 2]
+            length = np.sqrt((x * x + y * y) + z * z)
+            if length < 1e-12:
+                x, y, z, length = 0.0, 0.0, 1.0, 1.0
+            out[v0 + t, 0] = x / length
+            out[v0 + t, 1] = y / length
+            out[v0 + t, 2] = z / length
+    return out
 
 
 def _compact(faces: np.ndarray, n_vertices: int):
     """(used, faces') with ``used`` the sorted referenced vertex indices and ``faces'`` indexing them:
-    ``np.unique(faces, return_inverse=True)`` without the sort (a mask and a cumulative sum)."""
+    ``np.unique(faces, return_inverse=True)`` without the sort (a mask and a cumulative sum);
+    ``used`` is None when every vertex is referenced."""
     mask = np.zeros(n_vertices, dtype=bool)
     mask[faces.ravel()] = True
-    used = np.flatnonzero(mask)
-    if len(used) == n_vertices:
-        return used, faces.reshape(-1, 3)
+    if mask.all():
+        return None, faces.reshape(-1, 3)
     new = np.cumsum(mask) - 1
-    return used, new[faces].reshape(-1, 3)
+    return np.flatnonzero(mask), new[faces].reshape(-1, 3)
 
 
 #: Vertex normals are computed for batches of meshes of about this many vertices.
@@ -102,15 +131,14 @@ _BATCH_VERTICES = 1_000_000
 
 
 def _normals_and_bounds(positions: List[np.ndarray], faces: List[np.ndarray]):
-    """:func:`_unit_normals` and per-axis (min, max) of many float32 meshes in one vectorised pass.
+    """Unit vertex normals (:func:`_normals_kernel`) and per-axis (min, max) of many float32 meshes.
 
-    The same numbers as one call per mesh: the face normals are summed per vertex in the same
-    order (corner 0 of every face of a mesh, then corner 1, then corner 2).
+    The same numbers as one mesh at a time: the meshes are independent (batches of about
+    ``_BATCH_VERTICES`` vertices bound the temporaries).
     """
     if not positions:
         return [], [], []
     nv = np.array([len(p) for p in positions], dtype=np.int64)
-    # bounded temporaries: batches of meshes of about _BATCH_VERTICES vertices
     cuts = np.r_[0, np.flatnonzero(np.diff(np.cumsum(nv) // _BATCH_VERTICES)) + 1, len(positions)].tolist()
     if len(cuts) == 2:
         return _normals_and_bounds_batch(positions, faces, nv)
@@ -121,11 +149,10 @@ def _normals_and_bounds(positions: List[np.ndarray], faces: List[np.ndarray]):
 
 def _normals_and_bounds_batch(positions: List[np.ndarray], faces: List[np.ndarray], nv: np.ndarray):
     """One batch of :func:`_normals_and_bounds` (``nv`` the vertex count of every mesh)."""
-    nf = np.array([len(f) for f in faces], dtype=np.int64)
     voff = np.r_[0, np.cumsum(nv)]
+    foff = np.r_[0, np.cumsum([len(f) for f in faces])].astype(np.int64)
     pos = np.concatenate(positions)
-    f = np.concatenate(faces) + np.repeat(voff[:-1], nf)[:, None]
-    normals = _unit_normals(pos, f)
+    normals = _normals_kernel(pos, np.concatenate(faces).astype(np.int64, copy=False), voff, foff)
     starts = voff[:-1]
     ok = nv > 0
     lo = np.zeros((len(nv), 3), dtype=pos.dtype)
@@ -137,45 +164,58 @@ def _normals_and_bounds_batch(positions: List[np.ndarray], faces: List[np.ndarra
     return [normals[a:b] for a, b in zip(bounds[:-1], bounds[1:])], lo, hi
 
 
+#: JSON text of an object, exactly as ``json.dumps`` with the GLB's settings writes it.
+_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode
+
+
+def _json_floats(values: np.ndarray) -> List[str]:
+    """The JSON texts of an array's values as floats (``repr``, as :data:`_json` writes them), flattened."""
+    values = np.asarray(values, dtype=np.float64)
+    if not np.isfinite(values).all():
+        raise ValueError("Out of range float values are not JSON compliant")
+    return [repr(x) for x in values.ravel().tolist()]
+
+
+class _Primitive(NamedTuple):
+    """One primitive's arrays as a GLB stores them (what ``cache`` keeps, see :func:`glb_bytes`)."""
+
+    positions: np.ndarray       # (n, 3) float32, ENU axes, relative to the tree base
+    normals: np.ndarray         # (n, 3) float32 unit vectors
+    indices: np.ndarray         # (3 f,) uint16 (n < 65535) or uint32
+    texcoords: Optional[np.ndarray]   # (n, 2) float32, v flipped; None for bark
+    lo: np.ndarray              # (3,) float32 per-axis min of positions
+    hi: np.ndarray              # (3,) float32 per-axis max
+    bounds_json: str            # ',"min":[...],"max":[...]' of the POSITION accessor
+
+
 class _Builder:
-    """Accumulates the glTF JSON and the binary chunk."""
+    """The binary chunk (a list of buffers, joined once) and the JSON of its buffer views and accessors."""
 
     def __init__(self):
-        self.bin = bytearray()
-        self.views: list = []
-        self.accessors: list = []
+        self.parts: list = []
+        self.size = 0
+        self.views: List[str] = []
+        self.accessors: List[str] = []
 
-    def view(self, data: bytes, target: Optional[int] = None) -> int:
-        pad = (-len(self.bin)) % 8
-        self.bin.extend(b"\0" * pad)
-        v = {"buffer": 0, "byteOffset": len(self.bin), "byteLength": len(data)}
-        if target is not None:
-            v["target"] = target
-        self.bin.extend(data)
-        self.views.append(v)
+    def view(self, data, target: Optional[int] = None) -> int:
+        """A buffer view of ``data`` (bytes or a C-contiguous array), 8-byte aligned."""
+        pad = (-self.size) % 8
+        if pad:
+            self.parts.append(bytes(pad))
+            self.size += pad
+        n = data.nbytes if isinstance(data, np.ndarray) else len(data)
+        self.views.append('{"buffer":0,"byteOffset":%d,"byteLength":%d%s}'
+                          % (self.size, n, "" if target is None else ',"target":%d' % target))
+        self.parts.append(data)
+        self.size += n
         return len(self.views) - 1
 
-    def accessor(self, array: np.ndarray, kind: str, target: Optional[int], minmax: bool = False,
-                 bounds=None) -> int:
-        """An accessor + view of ``array``; with ``minmax`` its min/max, or ``bounds`` (min, max) given."""
-        array = np.ascontiguousarray(array)
-        ctype = {np.dtype(np.float32): _FLOAT, np.dtype(np.uint32): _UINT,
-                 np.dtype(np.uint16): _USHORT}[array.dtype]
-        count = len(array) if kind != "SCALAR" or array.ndim == 1 else array.size
-        acc = {"bufferView": self.view(array.tobytes(), target), "componentType": ctype,
-               "count": int(count), "type": kind}
-        if minmax and bounds is None:
-            a = array.reshape(count, -1)
-            bounds = (a.min(axis=0), a.max(axis=0))
-        if bounds is not None:
-            acc["min"] = [float(x) for x in bounds[0]]
-            acc["max"] = [float(x) for x in bounds[1]]
-        self.accessors.append(acc)
+    def accessor(self, array: np.ndarray, ctype: int, kind: str, target: Optional[int], extra: str = "") -> int:
+        """An accessor + view of the C-contiguous ``array`` (count = its length); ``extra`` more JSON members."""
+        view = self.view(array, target)
+        self.accessors.append('{"bufferView":%d,"componentType":%d,"count":%d,"type":"%s"%s}'
+                              % (view, ctype, len(array), kind, extra))
         return len(self.accessors) - 1
-
-    def indices(self, faces: np.ndarray, n_vertices: int) -> int:
-        dtype = np.uint16 if n_vertices < 65535 else np.uint32
-        return self.accessor(faces.astype(dtype).ravel(), "SCALAR", _ELEMENT_ARRAY_BUFFER)
 
 
 def _property_name(key: str) -> str:
@@ -189,9 +229,7 @@ NO_DATA = -9999
 
 def _metadata(builder: _Builder, rows: List[dict]):
     """EXT_structural_metadata schema + one property table built from the trees' attributes."""
-    keys: List[str] = []
-    for r in rows:
-        keys.extend(k for k in r if k not in keys)
+    keys = list(dict.fromkeys(k for r in rows for k in r))     # in first-seen order
     props, table = {}, {}
     used = set()
     for key in keys:
@@ -202,13 +240,14 @@ def _metadata(builder: _Builder, rows: List[dict]):
         values = [r.get(key) for r in rows]
         present = [v for v in values if v is not None]
         missing = len(present) < len(values)
-        if present and all(isinstance(v, bool) for v in present) and not missing:
+        types = set(map(type, present))                        # (bool has no subclasses)
+        if types == {bool} and not missing:
             bits = np.packbits(np.array(values, dtype=bool), bitorder="little")
             props[name] = {"type": "BOOLEAN"}
             table[name] = {"values": builder.view(bits.tobytes())}
-        elif present and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in present):
-            ints = all(isinstance(v, int) for v in present)
-            if ints and all(-2**31 < v < 2**31 for v in present):
+        elif types and all(issubclass(t, (int, float)) and t is not bool for t in types):
+            ints = all(issubclass(t, int) for t in types)
+            if ints and -2**31 < min(present) and max(present) < 2**31:
                 arr = np.array([NO_DATA if v is None else v for v in values], dtype="<i4")
                 props[name] = {"type": "SCALAR", "componentType": "INT32"}
             else:
@@ -242,11 +281,15 @@ def _pick_lod(model: TreeModel, lod):
 CONTENTS = ("model", "billboard")
 
 
-def uses_billboard(model: TreeModel, content: str = "model") -> bool:
-    """Whether ``model`` is drawn as its billboard for ``content`` (see the module docstring)."""
-    if model.billboard is None or len(model.billboard_arrays()[1]) == 0:
+def uses_billboard(model: TreeModel, content: str = "model", cache: Optional[dict] = None) -> bool:
+    """Whether ``model`` is drawn as its billboard for ``content`` (see the module docstring).
+
+    ``cache``: see :func:`~.model.cached` (the arrays are then checked once)."""
+    cache = {} if cache is None else cache
+    if model.billboard is None or len(mesh_arrays(model, "billboard", cache)[1]) == 0:
         return False
-    return content == "billboard" or not model.has_mesh()
+    return content == "billboard" or not (len(mesh_arrays(model, "wood", cache)[1]) > 0
+                                          or len(mesh_arrays(model, "leaves", cache)[1]) > 0)
 
 
 def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = None,
@@ -259,69 +302,75 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
     ``content`` "model" (default) or "billboard": the trees' billboards where they have one.
     ``cache``: a dict shared by several calls on the same, unchanged models (a tile's GLB and its
     tileset, :func:`write_glb` / :func:`~.tiles3d.write_tileset`): each tree's primitives (float32
-    positions, normals, bounds, indices) are then computed once per frame; the bytes are the same.
+    positions, normals, bounds, indices, texture coordinates), attributes and billboard PNG are then
+    computed once per frame; the bytes are the same.
     The dict keeps the models and these arrays alive: drop it after the exports.
     """
     if content not in CONTENTS:
         raise InputError(f"glTF export: content must be one of {', '.join(CONTENTS)}, got {content!r}")
-    models = check_models(models, "glTF export")
-    b = _Builder()
+    cache = {} if cache is None else cache
+    models = check_models(models, "glTF export", cache)
     bases_enu, jac = georef.tree_frames([m.base for m in models])
-    rows = [m.json_attributes() for m in models]
+    prims = _primitives(models, jac, lod, leaves, content, cache)
+    rows = [_attributes(m, cache) for m in models]
+    b = _Builder()
+    meshes, materials, textures, images = _meshes(b, models, prims, metadata, texture_size, cache)
+    geo = georef.describe()
+    if extras:
+        geo.update(extras)
+    geo = _json(geo)
+    names = [_json(m.name) for m in models]
+    nodes = ['{"name":"sylva_root","matrix":[%s],"children":[%s],"extras":{"georeference":%s}}'
+             % (",".join(_json_floats(Z_UP_TO_Y_UP.T)), ",".join(map(str, range(1, len(models) + 1))), geo)]
+    xyz = _json_floats(bases_enu)
+    nodes += ['{"name":%s,"mesh":%d,"translation":[%s,%s,%s],"extras":%s}'
+              % (names[i], i, *xyz[3 * i:3 * i + 3], rows[i][1]) for i in range(len(models))]
+    # the JSON chunk, as json.dumps of the document (same key order) writes it
+    doc = ['"asset":{"version":"2.0","generator":%s,"extras":{"georeference":%s}}' % (_json(SYLVA_GENERATOR), geo),
+           '"scene":0', '"scenes":[{"name":"trees","nodes":[0]}]', '"nodes":[%s]' % ",".join(nodes),
+           '"meshes":[%s]' % ",".join('{"name":%s,"primitives":[%s]}' % (names[i], ",".join(prims_i))
+                                      for i, prims_i in enumerate(meshes)),
+           '"materials":' + _json(materials)]
+    if textures:
+        doc += ['"textures":' + _json(textures), '"images":' + _json(images),
+                '"samplers":[{"magFilter":9729,"minFilter":9987,"wrapS":33071,"wrapT":33071}]']
+    if metadata:
+        ext = _metadata(b, [r[0] for r in rows])
+        doc += ['"extensionsUsed":["EXT_mesh_features","EXT_structural_metadata"]',
+                '"extensions":{"EXT_structural_metadata":%s}' % _json(ext)]
+    b.parts.append(bytes((-b.size) % 4))
+    size = b.size + len(b.parts[-1])
+    doc += ['"accessors":[%s]' % ",".join(b.accessors), '"bufferViews":[%s]' % ",".join(b.views),
+            '"buffers":[{"byteLength":%d}]' % size]
+    return _glb_container(("{" + ",".join(doc) + "}").encode("utf-8"), b.parts, size)
+
+
+def _meshes(b: _Builder, models, prims, metadata: bool, texture_size: int, cache: dict):
+    """(every model's primitives as JSON, materials, textures, images): the views and accessors of
+    ``prims`` (:func:`_primitives`) written to ``b`` in file order."""
     materials = [{"name": "bark", "pbrMetallicRoughness": {
         "baseColorFactor": list(BARK_RGBA), "metallicFactor": 0.0, "roughnessFactor": 0.9}}]
     textures, images, leaf_material = [], [], {}
-    meshes, nodes = [], [None]
-    # pass 1: every primitive's arrays; normals and bounds of all of them in one vectorised call
-    prim_parts = []
-    cached, todo = [], []
-    for i, m in enumerate(models):
-        parts = []
-        if uses_billboard(m, content):
-            bv, bf, buv = m.billboard_arrays()
-            parts.append((_BILLBOARD, "billboard", bv, bf, buv))
-        else:
-            wood_lod = _pick_lod(m, lod)
-            wv, wf = m.wood_arrays(wood_lod)
-            if len(wf):
-                parts.append(("bark", ("bark", wood_lod), wv, wf, None))
-            if leaves:
-                lv, lf, luv = m.leaf_arrays()
-                if len(lf):
-                    parts.append((m.leaves.texture, "leaves", lv, lf, luv))
-        for kind, tag, v, f, uv in parts:
-            key = (id(m), tag, jac[i].tobytes())
-            hit = cache.get(key) if cache is not None else None
-            if hit is not None and hit[0] is m:       # the very model (ids are reused once it is gone)
-                prim_parts.append((i, kind) + hit[1][:3])
-                cached.append(hit[1][3:])
-                continue
-            # drop unreferenced vertices so min/max and counts describe what is drawn
-            used, f = _compact(f, len(v))
-            pos = (v[used] @ jac[i].T).astype(np.float32)
-            prim_parts.append((i, kind, pos, f, None if uv is None else uv[used]))
-            cached.append(None)
-            todo.append((len(prim_parts) - 1, key, m))
-    new = _normals_and_bounds([prim_parts[k][2] for k, _, _ in todo], [prim_parts[k][3] for k, _, _ in todo])
-    for (k, key, m), normal, lo_k, hi_k in zip(todo, *new):
-        cached[k] = (normal, lo_k, hi_k)
-        if cache is not None:
-            cache[key] = (m, prim_parts[k][2:] + cached[k])
-    normals = [c[0] for c in cached]
-    lo = [c[1] for c in cached]
-    hi = [c[2] for c in cached]
-    # pass 2: buffer views and accessors, in file order
-    prims_of = [[] for _ in models]
-    for k, (i, kind, pos, f, uv) in enumerate(prim_parts):
+    meshes = [[] for _ in models]
+    feature, features = "", None
+    if metadata:  # every vertex's feature ID (its tree's row in the property table), one array for the file
+        feature = (',"extensions":{"EXT_mesh_features":{"featureIds":[{"featureCount":%d,"attribute":0,'
+                   '"propertyTable":0}]}}' % len(models))
+        features = np.repeat(np.array([i for i, _, _ in prims], dtype=np.float32),
+                             [len(p.positions) for _, _, p in prims])
+    start = 0
+    for i, kind, p in prims:
         m = models[i]
-        attrs = {"POSITION": b.accessor(pos, "VEC3", _ARRAY_BUFFER, bounds=(lo[k], hi[k])),
-                 "NORMAL": b.accessor(normals[k], "VEC3", _ARRAY_BUFFER)}
-        if uv is not None:
-            tex = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
-            attrs["TEXCOORD_0"] = b.accessor(tex, "VEC2", _ARRAY_BUFFER)
+        n = len(p.positions)
+        attrs = '"POSITION":%d' % b.accessor(p.positions, _FLOAT, "VEC3", _ARRAY_BUFFER, p.bounds_json)
+        attrs += ',"NORMAL":%d' % b.accessor(p.normals, _FLOAT, "VEC3", _ARRAY_BUFFER)
+        material = 0
+        if p.texcoords is not None:
+            attrs += ',"TEXCOORD_0":%d' % b.accessor(p.texcoords, _FLOAT, "VEC2", _ARRAY_BUFFER)
             if kind is _BILLBOARD:
+                png = cached(cache, m, "billboard_png", lambda m: m.billboard.png())
                 images.append({"name": f"billboard_{m.tree_id}", "mimeType": "image/png",
-                               "bufferView": b.view(m.billboard.png())})
+                               "bufferView": b.view(png)})
                 textures.append({"sampler": 0, "source": len(images) - 1})
                 materials.append({"name": f"billboard_{m.tree_id}", "alphaMode": "MASK", "alphaCutoff": 0.5,
                                   "doubleSided": True, "pbrMetallicRoughness": {
@@ -339,47 +388,83 @@ def glb_bytes(models: Sequence[TreeModel], georef: Georef, lod: Optional[int] = 
                 leaf_material[kind] = len(materials) - 1
             if kind is not _BILLBOARD:
                 material = leaf_material[kind]
-        else:
-            material = 0
-        prim = {"attributes": attrs, "indices": b.indices(f, len(pos)), "material": material, "mode": 4}
+        indices = b.accessor(p.indices, _UINT if p.indices.dtype == np.uint32 else _USHORT, "SCALAR",
+                             _ELEMENT_ARRAY_BUFFER)
         if metadata:
-            attrs["_FEATURE_ID_0"] = b.accessor(np.full(len(pos), i, np.float32), "SCALAR", _ARRAY_BUFFER)
-            prim["extensions"] = {"EXT_mesh_features": {"featureIds": [
-                {"featureCount": len(models), "attribute": 0, "propertyTable": 0}]}}
-        prims_of[i].append(prim)
+            attrs += ',"_FEATURE_ID_0":%d' % b.accessor(features[start:start + n], _FLOAT, "SCALAR", _ARRAY_BUFFER)
+            start += n
+        meshes[i].append('{"attributes":{%s},"indices":%d,"material":%d,"mode":4%s}'
+                         % (attrs, indices, material, feature))
+    return meshes, materials, textures, images
+
+
+def _attributes(m: TreeModel, cache: dict):
+    """(``m.json_attributes()``, their JSON text), computed once per ``cache``."""
+    row = cached_attributes(m, cache)
+    return row, cached(cache, m, "attributes_json", lambda m: _json(row))
+
+
+def _parts(m: TreeModel, lod, leaves: bool, content: str, cache: dict):
+    """(kind, cache tag, vertices, faces, uvs or None) of every primitive of ``m`` (see :func:`glb_bytes`)."""
+    if uses_billboard(m, content, cache):
+        bv, bf, buv = mesh_arrays(m, "billboard", cache)
+        return [(_BILLBOARD, "billboard", bv, bf, buv)]
+    parts = []
+    wood_lod = _pick_lod(m, lod)
+    wv, wf = mesh_arrays(m, "wood", cache, wood_lod)
+    if len(wf):
+        parts.append(("bark", ("bark", wood_lod), wv, wf, None))
+    if leaves:
+        lv, lf, luv = mesh_arrays(m, "leaves", cache)
+        if len(lf):
+            parts.append((m.leaves.texture, "leaves", lv, lf, luv))
+    return parts
+
+
+def _primitives(models, jac, lod, leaves: bool, content: str, cache: dict):
+    """(model index, kind, :class:`_Primitive`) of every primitive in file order, from ``cache`` or
+    encoded (normals and bounds of all new ones in one vectorised call) and put in it."""
+    out, todo = [], []
     for i, m in enumerate(models):
-        meshes.append({"name": m.name, "primitives": prims_of[i]})
-        nodes.append({"name": m.name, "mesh": len(meshes) - 1,
-                      "translation": [float(c) for c in bases_enu[i]], "extras": rows[i]})
-    geo = georef.describe()
-    if extras:
-        geo.update(extras)
-    nodes[0] = {"name": "sylva_root", "matrix": [float(c) for c in Z_UP_TO_Y_UP.T.ravel()],
-                "children": list(range(1, len(nodes))), "extras": {"georeference": geo}}
-    doc = {"asset": {"version": "2.0", "generator": SYLVA_GENERATOR, "extras": {"georeference": geo}},
-           "scene": 0, "scenes": [{"name": "trees", "nodes": [0]}], "nodes": nodes, "meshes": meshes,
-           "materials": materials}
-    if textures:
-        doc["textures"] = textures
-        doc["images"] = images
-        doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}]
-    if metadata:
-        ext = _metadata(b, rows)
-        doc["extensionsUsed"] = ["EXT_mesh_features", "EXT_structural_metadata"]
-        doc["extensions"] = {"EXT_structural_metadata": ext}
-    doc["accessors"] = b.accessors
-    doc["bufferViews"] = b.views
-    b.bin.extend(b"\0" * ((-len(b.bin)) % 4))
-    doc["buffers"] = [{"byteLength": len(b.bin)}]
-    return _pack_glb(doc, bytes(b.bin))
+        for kind, tag, v, f, uv in _parts(m, lod, leaves, content, cache):
+            key = (id(m), tag, jac[i].tobytes())
+            hit = cache.get(key)
+            if hit is not None and hit[0] is m:       # the very model (ids are reused once it is gone)
+                out.append((i, kind, hit[1]))
+                continue
+            # drop unreferenced vertices so min/max and counts describe what is drawn
+            used, f = _compact(f, len(v))
+            if used is not None:
+                v = v[used]
+                uv = None if uv is None else uv[used]
+            pos = (np.ascontiguousarray(v) @ jac[i].T).astype(np.float32)
+            tex = None
+            if uv is not None:
+                tex = np.empty((len(uv), 2), dtype=np.float32)
+                tex[:, 0] = uv[:, 0]
+                tex[:, 1] = 1.0 - uv[:, 1]
+            out.append((i, kind, None))
+            todo.append((len(out) - 1, key, m, pos, f, tex))
+    normals, lo, hi = _normals_and_bounds([t[3] for t in todo], [t[4] for t in todo])
+    text = _json_floats(np.hstack([lo, hi])) if todo else []
+    for j, ((k, key, m, pos, f, tex), n) in enumerate(zip(todo, normals)):
+        indices = f.astype(np.uint16 if len(pos) < 65535 else np.uint32).ravel()
+        bounds = ',"min":[%s,%s,%s],"max":[%s,%s,%s]' % tuple(text[6 * j:6 * j + 6])
+        cache[key] = (m, _Primitive(pos, n, indices, tex, lo[j], hi[j], bounds))
+        out[k] = out[k][:2] + (cache[key][1],)
+    return out
+
+
+def _glb_container(js: bytes, binary_parts: list, binary_size: int) -> bytes:
+    """The GLB file: header, JSON chunk (space-padded to 4 bytes) and binary chunk (already padded)."""
+    js += b" " * ((-len(js)) % 4)
+    total = 12 + 8 + len(js) + 8 + binary_size
+    return b"".join([struct.pack("<4sII", b"glTF", 2, total), struct.pack("<I4s", len(js), b"JSON"), js,
+                     struct.pack("<I4s", binary_size, b"BIN\0"), *binary_parts])
 
 
 def _pack_glb(doc: dict, binary: bytes) -> bytes:
-    js = json.dumps(doc, separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode("utf-8")
-    js += b" " * ((-len(js)) % 4)
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(js), b"JSON") + js
-            + struct.pack("<I4s", len(binary), b"BIN\0") + binary)
+    return _glb_container(_json(doc).encode("utf-8"), [binary], len(binary))
 
 
 def read_glb(path_or_bytes):
@@ -458,7 +543,8 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     ``content`` "billboard" writes the trees' billboards (Zhou et al.) instead of their models.
     ``cache``: see :func:`glb_bytes` (pass the same dict to :func:`~.tiles3d.write_tileset` of these models).
     """
-    models = check_models(models, f"glTF export to {path}")
+    cache = {} if cache is None else cache
+    models = check_models(models, f"glTF export to {path}", cache)
     path = Path(path)
     out: List[Path] = []
     if not per_tree:
@@ -477,7 +563,7 @@ def write_glb(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
         georef = Georef(frame, m.base)
         target = path / f"{m.name}.glb"
         out.append(atomic_write_bytes(target, glb_bytes([m], georef, lod, leaves, texture_size, metadata,
-                                                            content=content)))
+                                                            content=content, cache=cache)))
         if sidecars:
             out.extend(write_sidecars(target, georef))
         report(progress, (k + 1) / len(models), f"tree {m.tree_id}")

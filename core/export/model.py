@@ -21,13 +21,29 @@ from ..cloud import METRES, Units
 from ..atomic import atomic_open, atomic_write_bytes  # noqa: F401 (re-exported to the writers)
 from ..errors import CRSError, InputError
 
-__all__ = ["TreeModel", "ExportFrame", "check_models", "json_scalar"]
+__all__ = ["TreeModel", "ExportFrame", "check_models", "json_scalar", "cached", "mesh_arrays",
+           "cached_attributes"]
+
+
+_PLAIN = frozenset([bool, int, str, type(None)])
+#: ``value.item()`` of the common numpy scalars, done faster by their Python type.
+_UNWRAP = {**{t: float for t in (np.float64, np.float32, np.float16)},
+           **{t: int for t in (np.int64, np.int32, np.int16, np.int8, np.uint64, np.uint32, np.uint16, np.uint8)},
+           np.bool_: bool, np.str_: str}
 
 
 def json_scalar(value):
     """A JSON-serialisable scalar for an attribute value (numpy scalars unwrapped, NaN -> None)."""
-    if isinstance(value, np.generic):
+    unwrap = _UNWRAP.get(type(value))
+    if unwrap is not None:
+        value = unwrap(value)
+    elif isinstance(value, np.generic):
         value = value.item()
+    kind = type(value)
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind in _PLAIN:
+        return value
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if value is None or isinstance(value, (bool, int, float, str)):
@@ -91,7 +107,7 @@ class TreeModel:
         v = np.asarray(lv.vertices, dtype=np.float64).reshape(-1, 3)
         f = np.asarray(lv.faces, dtype=np.int64).reshape(-1, 3)
         uv = np.asarray(lv.uvs, dtype=np.float64).reshape(-1, 2)
-        if len(uv) != len(v) or _bad_index(f, len(v)) or not np.all(np.isfinite(v)):
+        if len(uv) != len(v) or _bad_index(f, len(v)) or not np.isfinite(v).all():
             raise InputError(f"tree {self.tree_id}: leaf mesh is inconsistent "
                              f"({len(v)} vertices, {len(uv)} uvs, faces index up to {f.max() if len(f) else -1})")
         return v, f, uv
@@ -127,7 +143,7 @@ def _mesh_arrays(mesh, where):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    if not np.all(np.isfinite(v)):
+    if not np.isfinite(v).all():
         raise InputError(f"{where}: the mesh has non-finite vertex coordinates")
     if _bad_index(f, len(v)):
         raise InputError(f"{where}: mesh faces index vertices that do not exist")
@@ -136,14 +152,18 @@ def _mesh_arrays(mesh, where):
 
 def _bad_index(faces: np.ndarray, n_vertices: int) -> bool:
     """Whether int64 ``faces`` index outside 0 .. n_vertices - 1 (one pass: negatives wrap to huge unsigned)."""
-    return bool(len(faces)) and int(faces.view(np.uint64).max()) >= n_vertices
+    return bool(len(faces)) and int(np.maximum.reduce(faces.view(np.uint64), axis=None)) >= n_vertices
 
 
-def check_models(models, what: str = "export"):
-    """A list of TreeModel; raises InputError for an empty list, duplicates or a tree without geometry."""
+def check_models(models, what: str = "export", cache: Optional[dict] = None):
+    """A list of TreeModel; raises InputError for an empty list, duplicates or a tree without geometry.
+
+    ``cache``: see :func:`cached`; the checked arrays are kept in it (:func:`mesh_arrays`).
+    """
     models = list(models)
     if not models:
         raise InputError(f"{what}: no trees to write")
+    cache = {} if cache is None else cache
     seen = set()
     for m in models:
         if not isinstance(m, TreeModel):
@@ -151,12 +171,43 @@ def check_models(models, what: str = "export"):
         if m.tree_id in seen:
             raise InputError(f"{what}: tree id {m.tree_id} occurs twice")
         seen.add(m.tree_id)
-        wv, wf = m.wood_arrays()
-        _, lf, _ = m.leaf_arrays()
-        if len(wf) == 0 and len(lf) == 0 and len(m.billboard_arrays()[1]) == 0:
+        wv, wf = mesh_arrays(m, "wood", cache)
+        _, lf, _ = mesh_arrays(m, "leaves", cache)
+        if len(wf) == 0 and len(lf) == 0 and len(mesh_arrays(m, "billboard", cache)[1]) == 0:
             raise InputError(f"{what}: tree {m.tree_id} has an empty mesh (no wood and no leaf faces); "
                              f"leave it out or rebuild its geometry")
     return models
+
+
+def cached(cache: dict, model: TreeModel, what, compute):
+    """``compute(model)``, kept in ``cache`` under ``what`` for this very model.
+
+    ``cache`` is a dict shared by the exports of the same, unchanged models (a tile's GLB, its
+    tileset: see :func:`~.gltf.glb_bytes`); a hit must hold the model itself, as ids are reused
+    once an object is gone.  Sylva, not in the paper.
+    """
+    key = (id(model), what)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    value = compute(model)
+    cache[key] = (model, value)
+    return value
+
+
+def mesh_arrays(model: TreeModel, what: str, cache: dict, lod: Optional[int] = None):
+    """``model.wood_arrays(lod)``, ``model.leaf_arrays()`` or ``model.billboard_arrays()`` (``what``
+    "wood", "leaves" or "billboard"), checked once per ``cache`` (:func:`cached`)."""
+    if what == "wood":
+        return cached(cache, model, ("wood", lod), lambda m: m.wood_arrays(lod))
+    if what == "leaves":
+        return cached(cache, model, "leaves", lambda m: m.leaf_arrays())
+    return cached(cache, model, "billboard", lambda m: m.billboard_arrays())
+
+
+def cached_attributes(model: TreeModel, cache: dict) -> Dict[str, Any]:
+    """``model.json_attributes()``, computed once per ``cache`` (:func:`cached`)."""
+    return cached(cache, model, "attributes", lambda m: m.json_attributes())
 
 
 @dataclass(frozen=True)

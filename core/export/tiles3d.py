@@ -16,9 +16,9 @@ Layout written into ``folder``::
 * Geometric error (metres): a leaf tile 0 (the full model); the parent tile
   the largest distance from any full-model vertex (wood and leaves) to the
   nearest coarse vertex of the same tree (a one-sided Hausdorff distance on
-  vertices, cKDTree) — for a billboard, to the nearest opaque texel centre of
-  its quads (what a viewer sees of it); the tileset the diagonal of the root box (the error of
-  drawing nothing).  ``refine`` is REPLACE: close up, children replace the parent.
+  vertices, exact, one early-break search over all trees) — for a billboard, to the nearest
+  opaque texel centre of its quads (what a viewer sees of it); the tileset the diagonal of the
+  root box (the error of drawing nothing).  ``refine`` is REPLACE: close up, children replace the parent.
 * Per-tree attributes: EXT_mesh_features (feature ID per vertex) and
   EXT_structural_metadata (one property table per GLB), plus node extras.
 
@@ -29,52 +29,59 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import List, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 
 from ..errors import InputError
+from ..jit import njit
 from ..progress import check, report
 from .georef import Georef, default_origin, write_sidecars
 from .gltf import SYLVA_GENERATOR, glb_bytes, uses_billboard
-from .model import ExportFrame, TreeModel, atomic_write_bytes, check_models
+from .model import ExportFrame, TreeModel, atomic_write_bytes, check_models, mesh_arrays
 
-__all__ = ["write_tileset", "tile_box", "coarse_error"]
+__all__ = ["write_tileset", "tile_box", "coarse_error", "max_coarse_error"]
 
 _PAD_M = 0.01
 
 
-def _enu_bounds(model: TreeModel, base_enu, jac, coarse: bool, cache=None):
+def _enu_bounds(models, idx, bases_enu, jac, coarse: bool, cache: dict):
     """Per-axis (min, max) (3,) of the ENU positions (float32 rounding applied as in the GLB) of what a
-    tile draws of ``model``, or None when it draws nothing.
+    tile draws of the models ``idx``, or None when it draws nothing.
 
-    From the float32 bounds :func:`~.gltf.glb_bytes` put in ``cache`` when it has them (adding the
-    base is monotonic, so ``min(p + b) == min(p) + b`` exactly), else from the vertices.
+    From the float32 bounds :func:`~.gltf.glb_bytes` put in ``cache`` when it has them, else from the
+    vertices; adding the base is monotonic, so ``min(p + b) == min(p) + b`` exactly.
     """
-    lo, hi = [], []
-    for tag, v, f in _drawn_parts(model, coarse):
-        if len(f):
-            hit = cache.get((id(model), tag, jac.tobytes())) if cache is not None else None
-            if hit is not None and hit[0] is model:
-                lo.append(hit[1][4].astype(np.float64) + base_enu)
-                hi.append(hit[1][5].astype(np.float64) + base_enu)
-            else:
-                pts = (v[_used(f, len(v))] @ jac.T).astype(np.float32).astype(np.float64) + base_enu
-                lo.append(pts.min(axis=0))
-                hi.append(pts.max(axis=0))
+    lo, hi, owner = [], [], []
+    for i in idx:
+        model = models[i]
+        for tag, v, f in _drawn_parts(model, coarse, cache):
+            if len(f):
+                hit = cache.get((id(model), tag, jac[i].tobytes()))
+                if hit is not None and hit[0] is model:
+                    lo.append(hit[1].lo)
+                    hi.append(hit[1].hi)
+                else:
+                    pos = (v[_used(f, len(v))] @ jac[i].T).astype(np.float32)
+                    lo.append(pos.min(axis=0))
+                    hi.append(pos.max(axis=0))
+                owner.append(i)
     if not lo:
         return None
-    return np.min(lo, axis=0), np.max(hi, axis=0)
+    base = bases_enu[owner]
+    return ((np.array(lo).astype(np.float64) + base).min(axis=0),
+            (np.array(hi).astype(np.float64) + base).max(axis=0))
 
 
-def _drawn_parts(model: TreeModel, coarse: bool):
+def _drawn_parts(model: TreeModel, coarse: bool, cache: dict):
     """(cache tag, vertices, faces) of what a tile draws of ``model`` (tags as :func:`~.gltf.glb_bytes`)."""
-    if uses_billboard(model, "billboard" if coarse else "model"):
-        return [("billboard",) + model.billboard_arrays()[:2]]
+    if uses_billboard(model, "billboard" if coarse else "model", cache):
+        return [("billboard",) + mesh_arrays(model, "billboard", cache)[:2]]
     if coarse:
         lod = min(model.lods) if model.lods else None
-        return [(("bark", lod),) + model.wood_arrays(lod)]
-    return [(("bark", None),) + model.wood_arrays(), ("leaves",) + model.leaf_arrays()[:2]]
+        return [(("bark", lod),) + mesh_arrays(model, "wood", cache, lod)]
+    return [(("bark", None),) + mesh_arrays(model, "wood", cache),
+            ("leaves",) + mesh_arrays(model, "leaves", cache)[:2]]
 
 
 def tile_box(points: np.ndarray, pad_m: float = _PAD_M) -> List[float]:
@@ -92,59 +99,111 @@ def _box(lo: np.ndarray, hi: np.ndarray, pad_m: float = _PAD_M) -> List[float]:
 
 def coarse_error(model: TreeModel) -> float:
     """Largest distance (m) from a full-model vertex to the nearest vertex of its coarse version."""
-    from scipy.spatial import cKDTree
+    return max_coarse_error([model])
 
-    if uses_billboard(model, "billboard"):
-        if not model.has_mesh():
-            return 0.0  # the billboard is the full model too
+
+def max_coarse_error(models: Sequence[TreeModel], cache: Optional[dict] = None) -> float:
+    """``max(coarse_error(m) for m in models)``: the root tile's geometric error, in one kernel call.
+
+    Only the largest distance matters, so a full-model vertex is dropped as soon as some coarse
+    vertex lies within the largest distance found so far (:func:`_max_nearest_sq`).
+    ``cache``: see :func:`~.model.cached`.
+    """
+    cache = {} if cache is None else cache
+    best, queries, targets = 0.0, [], []
+    for m in models:
+        value, q, t = _coarse_sets(m, cache)
+        best = max(best, value)
+        if q is not None:
+            queries.append(q)
+            targets.append(t)
+    if not queries:
+        return best
+    qoff = np.r_[0, np.cumsum([len(q) for q in queries])].astype(np.int64)
+    toff = np.r_[0, np.cumsum([len(t) for t in targets])].astype(np.int64)
+    far = _max_nearest_sq(np.concatenate(queries), qoff, np.concatenate(targets), toff, _SAMPLE_STRIDE)
+    return max(best, float(np.sqrt(far)))
+
+
+def _coarse_sets(model: TreeModel, cache: dict):
+    """What :func:`coarse_error` measures of ``model``: (error, None, None) when no search is needed,
+    else (0, full-model points, coarse points) for the largest distance from a full-model point to
+    the nearest coarse point (the coarse level's drawn vertices, or the opaque texel centres of
+    its billboard)."""
+    if uses_billboard(model, "billboard", cache):
+        wv, wf = mesh_arrays(model, "wood", cache)
+        lv, lf, _ = mesh_arrays(model, "leaves", cache)
+        if len(wf) == 0 and len(lf) == 0:
+            return 0.0, None, None  # the billboard is the full model too
         from ..reconstruct.billboard import opaque_points
 
-        fv = np.concatenate([model.leaf_arrays()[0], model.wood_arrays()[0]])
-        return _max_nearest(cKDTree(opaque_points(model.billboard)), fv)
+        return 0.0, np.concatenate([lv, wv]), np.asarray(opaque_points(model.billboard), dtype=np.float64)
     lod = min(model.lods) if model.lods else None
-    cv, cf = model.wood_arrays(lod)
-    wv, wf = model.wood_arrays()
-    lv = model.leaf_arrays()[0]
-    fv = np.concatenate([wv, lv])
-    if len(fv) == 0:
-        return 0.0
+    cv, cf = mesh_arrays(model, "wood", cache, lod)
+    wv, wf = mesh_arrays(model, "wood", cache)
+    lv = mesh_arrays(model, "leaves", cache)[0]
+    if len(wv) + len(lv) == 0:
+        return 0.0, None, None
     if len(cf) == 0:
-        return float(np.linalg.norm(fv - fv.mean(axis=0), axis=1).max() * 2.0)
-    used = _used(cf, len(cv))
+        fv = np.concatenate([wv, lv])
+        return float(np.linalg.norm(fv - fv.mean(axis=0), axis=1).max() * 2.0), None, None
+    drawn = np.zeros(len(cv), dtype=bool)
+    drawn[cf.ravel()] = True
+    every = bool(drawn.all())
     if lod is None:
         # the coarse level is the full wood: its drawn vertices are at distance 0, only the others are queried
-        drawn = np.zeros(len(wv), dtype=bool)
-        drawn[used] = True
-        wv = wv[~drawn]
+        wv = wv[:0] if every else wv[~drawn]
         if len(wv) + len(lv) == 0:
-            return 0.0
-    return _max_nearest(cKDTree(cv[used]), np.concatenate([lv, wv]))   # leaf quads first: see _max_nearest
+            return 0.0, None, None
+    return 0.0, lv if len(wv) == 0 else np.concatenate([lv, wv]), cv if every else cv[drawn]
 
 
-def _max_nearest(tree, points: np.ndarray) -> float:
-    """``max_i dist(points[i], tree)``, exactly, querying fewer points.
+#: Every this many-th full-model point is searched first (see :func:`_max_nearest_sq`).
+_SAMPLE_STRIDE = 64
 
-    Vertices come in quads (leaf cards: two corners at the twig, two at the leaf tip); the
-    last point of every four is queried first, then the other three only where the triangle
-    inequality ``d(p) <= d(q) + |p - q|`` (q that last point) cannot rule out that they beat
-    the maximum found so far.  Any order of points gives the exact result (only the number of
-    points queried changes).
+
+@njit
+def _max_nearest_sq(queries, qoff, targets, toff, stride):
+    """``max`` over sets ``s`` and points ``q`` of set ``s`` of the squared distance from ``q`` to the
+    nearest target of set ``s`` (queries ``qoff[s]:qoff[s+1]``, targets ``toff[s]:toff[s+1]``).
+
+    Exact, and the squared distance as ``cKDTree`` computes it (``(dx^2 + dy^2) + dz^2``), so its
+    square root is the ``max`` of ``cKDTree.query`` distances to the last bit; inf when a set with
+    queries has no target.  The early break of Taha & Hanbury (2015, "An efficient algorithm for
+    calculating the exact Hausdorff distance"): a point is dropped as soon as a target lies within
+    the largest distance found so far, trying the targets from the previous point's nearest one on
+    (consecutive points are near each other).  Every ``stride``-th point of every set is searched
+    first, so that the largest distance is nearly known before the other points are (any order
+    gives the same result).  Sylva, not in the paper.
     """
-    n = len(points)
-    i = np.arange(n)
-    first = (i % 4 == 3) | (i >= n - n % 4)       # one corner of every quad, and a ragged end
-    d_first, _ = tree.query(points[first])
-    best = float(d_first.max()) if len(d_first) else 0.0
-    rest = np.flatnonzero(~first)
-    if len(rest) == 0:
-        return best
-    partner = rest - rest % 4 + 3
-    d_of = np.empty(n)
-    d_of[first] = d_first
-    bound = d_of[partner] + np.linalg.norm(points[rest] - points[partner], axis=1)
-    need = rest[bound >= best - 1e-9 * max(1.0, best)]    # margin against rounding of the bound
-    if len(need):
-        best = max(best, float(tree.query(points[need])[0].max()))
+    best = 0.0
+    for phase in range(2):
+        for s in range(len(qoff) - 1):
+            t0, t1 = toff[s], toff[s + 1]
+            nt = t1 - t0
+            if nt == 0:
+                if qoff[s + 1] > qoff[s]:
+                    return np.inf
+                continue
+            start = t0
+            for i in range(qoff[s], qoff[s + 1], stride if phase == 0 else 1):
+                x, y, z = queries[i, 0], queries[i, 1], queries[i, 2]
+                near = np.inf
+                nearest = start
+                for step in range(nt):
+                    j = start + step
+                    if j >= t1:
+                        j -= nt
+                    dx, dy, dz = x - targets[j, 0], y - targets[j, 1], z - targets[j, 2]
+                    d = (dx * dx + dy * dy) + dz * dz
+                    if d < near:
+                        near = d
+                        nearest = j
+                        if near <= best:
+                            break
+                if near > best:
+                    best = near
+                start = nearest
     return best
 
 
@@ -167,7 +226,7 @@ def write_tileset(models: Sequence[TreeModel], folder, frame: ExportFrame, origi
     """
     cache = {} if cache is None else cache
     folder = Path(folder)
-    models = check_models(models, f"3D Tiles export to {folder}")
+    models = check_models(models, f"3D Tiles export to {folder}", cache)
     if not tile_size_m > 0:
         raise InputError(f"3D Tiles export: tile_size_m must be positive, got {tile_size_m}")
     georef = Georef(frame, default_origin(models) if origin is None else origin)
@@ -177,19 +236,21 @@ def write_tileset(models: Sequence[TreeModel], folder, frame: ExportFrame, origi
     (folder / "content").mkdir(parents=True, exist_ok=True)
     bases_enu, jac = georef.tree_frames([m.base for m in models])
     cell = np.floor(bases_enu[:, :2] / tile_size_m).astype(np.int64)
-    keys = sorted(set(map(tuple, cell.tolist())))
+    tiles = {}          # grid cell -> its trees, in model order
+    for i, key in enumerate(map(tuple, cell.tolist())):
+        tiles.setdefault(key, []).append(i)
+    keys = sorted(tiles)
     written: List[Path] = []
     children = []
     bounds = []         # (min, max) of what each child tile draws, then of the coarse models
     for k, key in enumerate(keys):
         check(cancelled)
-        idx = [i for i in range(len(models)) if tuple(cell[i]) == key]
+        idx = tiles[key]
         group = [models[i] for i in idx]
         name = f"content/tile_{key[0]}_{key[1]}.glb"
         written.append(atomic_write_bytes(folder / name, glb_bytes(group, georef, None, True, texture_size,
                                                                    cache=cache)))
-        tb = [x for x in (_enu_bounds(models[i], bases_enu[i], jac[i], False, cache) for i in idx) if x is not None]
-        bounds.append((np.min([x[0] for x in tb], axis=0), np.max([x[1] for x in tb], axis=0)))
+        bounds.append(_enu_bounds(models, idx, bases_enu, jac, False, cache))
         children.append({"boundingVolume": {"box": _box(*bounds[-1])}, "geometricError": 0.0,
                          "content": {"uri": name}})
         report(progress, 0.9 * (k + 1) / len(keys), f"tile {key[0]} {key[1]}: {len(group)} trees")
@@ -197,9 +258,10 @@ def write_tileset(models: Sequence[TreeModel], folder, frame: ExportFrame, origi
     written.append(atomic_write_bytes(folder / "content/root.glb",
                                       glb_bytes(models, georef, lod="coarsest", leaves=False, texture_size=texture_size,
                                                 content=root_content, cache=cache)))
-    bounds.extend(x for x in (_enu_bounds(m, bases_enu[i], jac[i], True, cache) for i, m in enumerate(models))
-                  if x is not None)
-    root_error = max(coarse_error(m) for m in models)
+    coarse = _enu_bounds(models, range(len(models)), bases_enu, jac, True, cache)
+    if coarse is not None:
+        bounds.append(coarse)
+    root_error = max_coarse_error(models, cache)
     box = _box(np.min([x[0] for x in bounds], axis=0), np.max([x[1] for x in bounds], axis=0))
     diagonal = 2.0 * float(np.linalg.norm([box[3], box[7], box[11]]))
     tileset = {
