@@ -394,3 +394,17 @@ def test_clean_kernels_equal_scipy(stand):
         assert len(ref[0]) > 100
         for x, y in zip(ref, mine):
             np.testing.assert_array_equal(x[o1], y[o2])
+
+
+def test_column_maxima_grid_equals_sorts():
+    """The grid of :func:`_column_maxima` picks what the two stable sorts picked, ties included."""
+    rng = np.random.default_rng(9)
+    xy = rng.uniform(0, 40, size=(20000, 2))
+    z = np.round(rng.uniform(0, 30, size=20000), 1)          # many exact ties
+    ij = np.floor((xy - xy.min(axis=0)) / 0.35).astype(np.int64)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.argsort(-z, kind="stable")
+    _, first = np.unique(key[order], return_index=True)
+    np.testing.assert_array_equal(N._column_maxima(xy, z, 0.35), np.sort(order[first]))
+    far = np.r_[xy, [[1e6, 1e6]]]                             # a huge extent takes the sorting path
+    assert len(N._column_maxima(far, np.r_[z, 1.0], 0.35)) == len(first) + 1

@@ -478,11 +478,34 @@ def _column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     A tree top is always such a point, so the local-maximum search only needs
     these (a canopy-surface thinning; cells narrower than the window keep the
     window maximum nearly exact)."""
+    if len(xy) == 0:
+        return np.zeros(0, dtype=np.int64)
     ij = np.floor((xy - xy.min(axis=0)) / cell_m).astype(np.int64)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    ny = int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    size = int(ij[:, 0].max() + 1) * ny
+    if size <= 8 * len(key) + 1_000_000:      # a grid of cells is cheaper than two sorts
+        return _cell_maxima(key, np.ascontiguousarray(z, dtype=np.float64), size)
     order = np.argsort(-z, kind="stable")
     _, first = np.unique(key[order], return_index=True)
     return np.sort(order[first])
+
+
+@njit
+def _cell_maxima(key, z, size):
+    """Ascending indices of the highest point of each occupied cell 0..size-1 (ties: lowest index)."""
+    best = np.full(size, -1, dtype=np.int64)
+    for i in range(len(key)):
+        b = best[key[i]]
+        if b < 0 or z[i] > z[b]:
+            best[key[i]] = i
+    out = np.empty(len(key), dtype=np.int64)
+    k = 0
+    for c in range(size):
+        if best[c] >= 0:
+            out[k] = best[c]
+            k += 1
+    return np.sort(out[:k])
 
 
 def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> float:
