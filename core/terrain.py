@@ -32,6 +32,7 @@ stacked by per-cell maximum.
 """
 from __future__ import annotations
 
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -104,13 +105,65 @@ def _bilinear(grid: np.ndarray, x: np.ndarray, y: np.ndarray, cell: float, pad: 
     return ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
 
 
+def _disk_filter(grid: np.ndarray, radius: int, dilate: bool) -> np.ndarray:
+    """``ndimage.grey_erosion`` (``dilate``: ``grey_dilation``) of a finite ``grid`` by
+    ``_disk(radius)``, edges extended (``mode="nearest"``): :func:`_chord_filter`."""
+    r = int(radius)
+    half = np.array([math.isqrt(r * r - dy * dy) for dy in range(r + 1)], dtype=np.int64)
+    return _chord_filter(np.ascontiguousarray(grid, dtype=np.float64), half, bool(dilate))
+
+
+@njit
+def _chord_filter(grid, half, dilate):
+    """Minimum (``dilate``: maximum) of ``grid`` over the disk whose chord ``dy`` rows off
+    the centre spans ``half[|dy|]`` cells either side, rows and columns clamped at the edges.
+
+    Sylva, not in the paper: by chords, a minimum of minima, so the same values as the
+    disk filter (a tie of 0.0 and -0.0 may keep the other one: equal to every comparison):
+    each source row's minima over every half-width, grown one cell at a time,
+    are combined into the output rows within reach; about (4 r + 1) comparisons per cell
+    instead of the disk's area, and one row of minima per half-width in memory."""
+    h, w = grid.shape
+    r = len(half) - 1
+    out = np.full((h, w), -np.inf if dilate else np.inf)
+    row = np.empty((half[0] + 1, w))
+    for s in range(h):
+        for x in range(w):
+            row[0, x] = grid[s, x]
+        for k in range(1, half[0] + 1):
+            for x in range(w):
+                m = row[k - 1, x]
+                a = grid[s, max(x - k, 0)]
+                b = grid[s, min(x + k, w - 1)]
+                if dilate:
+                    m = a if a > m else m
+                    m = b if b > m else m
+                else:
+                    m = a if a < m else m
+                    m = b if b < m else m
+                row[k, x] = m
+        for dy in range(-r, r + 1):
+            k = half[abs(dy)]
+            first = 0 if s == 0 else max(s - dy, 0)             # output rows y with
+            last = h - 1 if s == h - 1 else min(s - dy, h - 1)  # clamp(y + dy) == s
+            for y in range(first, last + 1):
+                for x in range(w):
+                    v = row[k, x]
+                    if dilate:
+                        out[y, x] = v if v > out[y, x] else out[y, x]
+                    else:
+                        out[y, x] = v if v < out[y, x] else out[y, x]
+    return out
+
+
 def _progressive_opening(surface: np.ndarray, radii: Sequence[int], thresholds: Sequence[float]) -> np.ndarray:
     """Pingel et al. (2013), progressive filter: flag cells whose drop under an opening of growing radius
-    exceeds the radius' threshold; each opening is applied to the previous opened surface."""
+    exceeds the radius' threshold; each opening is applied to the previous opened surface.
+    The opening (erosion then dilation by a disk) is :func:`_disk_filter`'s."""
     flagged = np.zeros(surface.shape, dtype=bool)
     last = surface
     for radius, threshold in zip(radii, thresholds):
-        opened = ndimage.grey_opening(last, footprint=_disk(int(radius)), mode="nearest")
+        opened = _disk_filter(_disk_filter(last, int(radius), False), int(radius), True)
         flagged |= (last - opened) > threshold
         last = opened
     return flagged
@@ -300,15 +353,64 @@ def _spatial_order(xy: np.ndarray) -> np.ndarray:
 
     Qhull's point location walks from the previous answer, so querying (and
     triangulating) in this order instead of at random is hundreds of times faster.
+    The permutation is ``np.lexsort((serpentine column, row))``'s, computed by a
+    counting sort (:func:`_serpentine_sort`; Sylva, not in the paper).
     """
     if len(xy) < 2:
         return np.arange(len(xy))
-    lo = xy.min(axis=0)
+    order = _serpentine_sort(np.ascontiguousarray(xy, dtype=np.float64), 4 * len(xy) + 1024)
+    if len(order) == len(xy):
+        return order
+    lo = xy.min(axis=0)                                # a degenerate extent: too many cells
     span = np.maximum(xy.max(axis=0) - lo, 1e-9)
     cell = max(np.sqrt(span[0] * span[1] / len(xy)) * 4.0, 1e-9)
     ij = np.floor((xy - lo) / cell).astype(np.int64)
     serpentine = np.where(ij[:, 1] % 2 == 0, ij[:, 0], -ij[:, 0])
     return np.lexsort((serpentine, ij[:, 1]))
+
+
+@njit
+def _serpentine_sort(xy, max_cells):
+    """:func:`_spatial_order`'s permutation: points in square cells of 4 times the mean
+    spacing from the lower-left corner, sorted by row, then by column (descending in odd
+    rows), then by index (a stable counting sort).  Empty when the grid would have more
+    than ``max_cells`` cells."""
+    n = len(xy)
+    x0, y0, x1, y1 = xy[0, 0], xy[0, 1], xy[0, 0], xy[0, 1]
+    for i in range(1, n):
+        x0, y0 = min(x0, xy[i, 0]), min(y0, xy[i, 1])
+        x1, y1 = max(x1, xy[i, 0]), max(y1, xy[i, 1])
+    cell = max(np.sqrt(max(x1 - x0, 1e-9) * max(y1 - y0, 1e-9) / n) * 4.0, 1e-9)
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    nx, ny = 0, 0
+    for i in range(n):
+        fx = np.floor((xy[i, 0] - x0) / cell)
+        fy = np.floor((xy[i, 1] - y0) / cell)
+        if not (fx >= 0 and fy >= 0 and fx < max_cells and fy < max_cells):
+            return np.empty(0, dtype=np.int64)
+        ix[i], iy[i] = int(fx), int(fy)
+        nx, ny = max(nx, ix[i] + 1), max(ny, iy[i] + 1)
+    if nx * ny > max_cells:
+        return np.empty(0, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        col = ix[i] if iy[i] % 2 == 0 else nx - 1 - ix[i]
+        key[i] = iy[i] * nx + col
+        start[key[i] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[start[key[i]]] = i
+        start[key[i]] += 1
+    return order
+
+
+def _int32(index: np.ndarray) -> np.ndarray:
+    """Qhull's simplex and neighbour indices as the kernels take them (C int32: no copy)."""
+    return np.ascontiguousarray(index, dtype=np.int32)
 
 
 def _barycentric(tri: Delaunay, simplex: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -323,7 +425,8 @@ def _barycentric(tri: Delaunay, simplex: np.ndarray, query: np.ndarray) -> np.nd
     return np.where(np.isfinite(bary), bary, -np.inf)
 
 
-def _locate(tri: Delaunay, query: np.ndarray, max_steps: int = 500):
+def _locate(tri: Delaunay, query: np.ndarray, max_steps: int = 500,
+            at_vertex: Optional[np.ndarray] = None):
     """Triangle holding each query point (-1 outside the hull) and its barycentric coordinates.
 
     A visibility walk (which terminates on Delaunay triangulations), compiled:
@@ -332,16 +435,19 @@ def _locate(tri: Delaunay, query: np.ndarray, max_steps: int = 500):
     edge facing the most negative barycentric coordinate, so a walk is a few
     steps.  Faster than ``Delaunay.find_simplex``, whose per-simplex
     transforms dominate the cost on large ground sets.
+
+    A walk longer than ``max_steps`` is *lost* (the first queries, walking from
+    triangle 0, usually are); lost queries get ``find_simplex``'s answers
+    (:func:`_settle_lost`).  ``at_vertex``: optional mask of ``tri.points``;
+    see :func:`_settle_lost`.
     """
     query = np.ascontiguousarray(query, dtype=np.float64)
     order = _spatial_order(query)
-    simplex = np.full(len(query), -1, dtype=np.int64)
-    bary = np.zeros((len(query), 3))
-    s, b = _walk(np.ascontiguousarray(tri.points), tri.simplices.astype(np.int64),
-                 tri.neighbors.astype(np.int64), query[order], max_steps)
-    simplex[order], bary[order] = s, b
+    points = np.ascontiguousarray(tri.points)
+    simplices, neighbors = _int32(tri.simplices), _int32(tri.neighbors)
+    simplex, bary, _ = _walk(points, simplices, neighbors, query, order, max_steps)
     lost = np.flatnonzero(simplex == -2)
-    if len(lost):  # pragma: no cover - numerical corner cases
+    if len(lost) and not _settle_lost(tri, query, order[simplex[order] == -2], simplex, bary, at_vertex):
         found = tri.find_simplex(query[lost])
         simplex[lost] = found
         ok = found >= 0
@@ -349,15 +455,60 @@ def _locate(tri: Delaunay, query: np.ndarray, max_steps: int = 500):
     return simplex, bary
 
 
+# a lost query this far inside its triangle or outside a hull edge (in barycentric coordinates)
+# has one answer, whichever exact-enough method finds it (Sylva, not in the paper)
+_CLEAR = 1e-9
+
+
+def _settle_lost(tri: Delaunay, query: np.ndarray, lost: np.ndarray, simplex: np.ndarray,
+                 bary: np.ndarray, at_vertex: Optional[np.ndarray]) -> bool:
+    """Answer the lost queries (indices, in walk order) as ``Delaunay.find_simplex`` would, in place;
+    False (nothing changed) when one of them is ambiguous.
+
+    Sylva, not in the paper.  The lost queries walk again, without a step limit, each
+    from the previous one's triangle.  A query clearly inside its triangle (every
+    barycentric coordinate >= ``_CLEAR``) lies in no other; one clearly outside a hull
+    edge, or outside the points' bounding box, in none: ``find_simplex`` finds the same.
+    With ``at_vertex``, a query exactly on a vertex flagged there may keep any triangle
+    around it: each gives it the coordinates (1, 0, 0) up to order and sign of zero, so
+    a finite interpolated value that is not zero at that vertex comes out the same.
+    Anything else (on or near an edge) is ambiguous: the caller asks ``find_simplex``
+    about all lost queries in one call, as it would without this step.
+    """
+    q = query[lost]
+    points = np.ascontiguousarray(tri.points)
+    simplices = _int32(tri.simplices)
+    s, _, low = _walk(points, simplices, _int32(tri.neighbors), q, np.arange(len(q)),
+                      len(simplices) + 1)
+    found = s >= 0
+    clear = np.where(found, low >= _CLEAR, (s == -1) & (low <= -_CLEAR))
+    eps = 100 * np.finfo(np.float64).eps      # find_simplex's own bounding-box test
+    clear |= (s == -1) & np.any((q < tri.min_bound - eps) | (q > tri.max_bound + eps), axis=1)
+    if at_vertex is not None:
+        corners = simplices[np.where(found, s, 0)]                          # (n, 3)
+        on = np.all(points[corners] == q[:, None, :], axis=2) & at_vertex[corners]
+        clear |= found & on.any(axis=1)
+    if not clear.all():
+        return False
+    simplex[lost] = s
+    bary[lost] = 0.0
+    bary[lost[found]] = _barycentric(tri, s[found], q[found])
+    return True
+
+
 @njit
-def _walk(points, simplices, neighbors, query, max_steps):
-    """:func:`_locate`'s walks, queries in order; -1 outside the hull, -2 lost."""
+def _walk(points, simplices, neighbors, query, order, max_steps):
+    """:func:`_locate`'s walks, queries visited in ``order``; triangle of each query
+    (-1 outside the hull, -2 lost), its barycentric coordinates, and the lowest
+    coordinate where its walk stopped (>= -1e-12 in the triangle found; below when
+    it left the hull)."""
     n = len(query)
     simplex = np.full(n, -1, dtype=np.int64)
     bary = np.zeros((n, 3))
+    margin = np.zeros(n)
     eps = -1e-12
     start = 0
-    for q in range(n):
+    for q in order:
         qx, qy = query[q, 0], query[q, 1]
         cur = start
         for _ in range(max_steps):
@@ -376,6 +527,7 @@ def _walk(points, simplices, neighbors, query, max_steps):
                 worst, low = 1, l1
             if l2 < low:
                 worst, low = 2, l2
+            margin[q] = low
             if low >= eps:
                 simplex[q] = cur
                 bary[q, 0], bary[q, 1], bary[q, 2] = l0, l1, l2
@@ -387,7 +539,7 @@ def _walk(points, simplices, neighbors, query, max_steps):
             cur = nxt
         else:
             simplex[q] = -2
-    return simplex, bary
+    return simplex, bary, margin
 
 
 def _tin_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray,
@@ -403,14 +555,88 @@ def _tin_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray,
         values = values[first]
     except QhullError:  # all points collinear or coincident
         return out
-    simplex, bary = _locate(tri, query)
+    # without max_edge only the values matter: on a vertex, any triangle around it gives its value
+    at_vertex = (values != 0) if max_edge is None and np.isfinite(values).all() else None
+    simplex, bary = _locate(tri, query, at_vertex=at_vertex)
     inside = simplex >= 0
     if max_edge is not None:
         pts = tri.points[tri.simplices]                       # (m, 3, 2)
         edges = np.linalg.norm(pts - np.roll(pts, 1, axis=1), axis=2).max(axis=1)
         inside &= np.where(inside, edges[simplex] <= max_edge, False)
-    s = simplex[inside]
-    out[inside] = (values[tri.simplices[s]] * bary[inside]).sum(axis=1)
+    return _tin_values(np.ascontiguousarray(values, dtype=np.float64), _int32(tri.simplices),
+                       np.where(inside, simplex, -1), bary)
+
+
+@njit
+def _tin_values(values, simplices, simplex, bary):
+    """Interpolated value in each query's triangle (NaN where ``simplex`` < 0), summed as
+    numpy's ``(values[corners] * bary).sum(axis=1)`` does: left to right."""
+    out = np.full(len(simplex), np.nan)
+    for q in range(len(simplex)):
+        s = simplex[q]
+        if s >= 0:
+            out[q] = (values[simplices[s, 0]] * bary[q, 0] + values[simplices[s, 1]] * bary[q, 1]) \
+                + values[simplices[s, 2]] * bary[q, 2]
+    return out
+
+
+def _lowest_per_cell(g: np.ndarray, cell_m: float) -> np.ndarray:
+    """Indices of the lowest point (first of equals) of each ``cell_m`` square cell of local
+    points ``g`` (0: of each distinct (x, y) position), cells in ascending (column, row) order."""
+    if cell_m > 0:
+        pick = _lowest_per_cell_kernel(np.ascontiguousarray(g, dtype=np.float64), float(cell_m),
+                                       4 * len(g) + 1024)
+        if len(pick):
+            return pick
+        ij = np.floor(g[:, :2] / cell_m).astype(np.int64)   # a sparse extent: sort instead
+        order = np.lexsort((g[:, 2], ij[:, 1], ij[:, 0]))
+        pos = ij[order]
+    else:
+        order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
+        pos = g[order, :2]
+    first = np.ones(len(g), dtype=bool)
+    first[1:] = np.any(pos[1:] != pos[:-1], axis=1)
+    return order[first]
+
+
+@njit
+def _lowest_per_cell_kernel(g, cell, max_cells):
+    """:func:`_lowest_per_cell` with cells, on a dense grid of cells (Sylva, not in the paper):
+    what ``np.lexsort((z, row, column))`` keeps (lowest z, NaN last, first of equals).
+    Empty when the grid would have more than ``max_cells`` cells."""
+    n = len(g)
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    x0, y0, x1, y1 = 0, 0, 0, 0
+    for i in range(n):
+        fx = np.floor(g[i, 0] / cell)
+        fy = np.floor(g[i, 1] / cell)
+        if not (abs(fx) < max_cells and abs(fy) < max_cells):
+            return np.empty(0, dtype=np.int64)
+        ix[i], iy[i] = int(fx), int(fy)
+        if i == 0:
+            x0, y0, x1, y1 = ix[i], iy[i], ix[i], iy[i]
+        x0, y0 = min(x0, ix[i]), min(y0, iy[i])
+        x1, y1 = max(x1, ix[i]), max(y1, iy[i])
+    nx, ny = x1 - x0 + 1, y1 - y0 + 1
+    if n == 0 or nx * ny > max_cells:
+        return np.empty(0, dtype=np.int64)
+    best = np.full(nx * ny, -1, dtype=np.int64)
+    kept = 0
+    for i in range(n):
+        c = (ix[i] - x0) * ny + (iy[i] - y0)
+        b = best[c]
+        if b < 0:
+            best[c] = i
+            kept += 1
+        elif g[i, 2] < g[b, 2] or (g[b, 2] != g[b, 2] and g[i, 2] == g[i, 2]):
+            best[c] = i
+    out = np.empty(kept, dtype=np.int64)
+    j = 0
+    for c in range(nx * ny):
+        if best[c] >= 0:
+            out[j] = best[c]
+            j += 1
     return out
 
 
@@ -435,36 +661,30 @@ def ground_elevation(cloud: PointCloud, query_local: np.ndarray, method: str = "
 
     The ground points are first reduced to the lowest one per ``cell_m`` square
     cell (0: keep every distinct position), the resolution of a fine DTM."""
+    return _ground_elevation(cloud, cloud.local_xyz(), query_local, method, k, power, ground, cell_m)
+
+
+def _ground_elevation(cloud: PointCloud, loc: np.ndarray, query_local: np.ndarray, method: str,
+                      k: int, power: float, ground: Optional[np.ndarray], cell_m: float) -> np.ndarray:
+    """:func:`ground_elevation` given ``loc = cloud.local_xyz()``."""
     mask = ground_mask(cloud) if ground is None else np.asarray(ground, dtype=bool)
     if not mask.any():
         raise EmptyInputError(
             f"{cloud.name}: no ground points (class 2); run ground classification "
             "(classify_ground / normalize(..., classify=SMRF())) or use a tile that has a ground class")
-    loc = cloud.local_xyz()
     g = loc[mask]
     # One elevation per distinct ground position, or per ``cell_m`` cell: the lowest (duplicates
     # break the TIN; at 0.5 m the triangulation of a 20 pts/m2 tile costs a quarter).
-    if cell_m > 0:
-        ij = np.floor(g[:, :2] / cell_m).astype(np.int64)
-        order = np.lexsort((g[:, 2], ij[:, 1], ij[:, 0]))
-        pos = ij[order]
-    else:
-        order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
-        pos = g[order, :2]
-    g = g[order]
-    first = np.ones(len(g), dtype=bool)
-    first[1:] = np.any(pos[1:] != pos[:-1], axis=1)
-    g = g[first]
+    g = g[_lowest_per_cell(g, cell_m)]
     query = np.asarray(query_local, dtype=np.float64)[:, :2]
-    tree = cKDTree(g[:, :2])
     if method == "tin":
         out = _tin_interpolate(g[:, :2], g[:, 2], query)
         outside = ~np.isfinite(out)
         if outside.any():
-            out[outside] = _idw(tree, g[:, 2], query[outside], k, power)
+            out[outside] = _idw(cKDTree(g[:, :2]), g[:, 2], query[outside], k, power)
         return out
     if method == "knnidw":
-        return _idw(tree, g[:, 2], query, k, power)
+        return _idw(cKDTree(g[:, :2]), g[:, 2], query, k, power)
     raise InputError(f"unknown height-above-ground method {method!r}; use 'tin' or 'knnidw'")
 
 
@@ -482,7 +702,7 @@ def height_above_ground(cloud: PointCloud, method: str = "tin", k: int = 10, pow
     Raises :class:`EmptyInputError` naming the file when there is no ground point.
     """
     loc = cloud.local_xyz()
-    return loc[:, 2] - ground_elevation(cloud, loc, method=method, k=k, power=power, ground=ground, cell_m=cell_m)
+    return loc[:, 2] - _ground_elevation(cloud, loc, loc, method, k, power, ground, cell_m)
 
 
 def is_normalized(cloud: PointCloud, tolerance_m: float = 0.5) -> bool:

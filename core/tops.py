@@ -194,32 +194,84 @@ def _one_per_plateau(xy: np.ndarray, height: np.ndarray, radius: np.ndarray) -> 
     return np.sort(order[first])
 
 
+def _cell_maxima(xy: np.ndarray, h: np.ndarray, cell: float) -> np.ndarray:
+    """Index of the highest point (then lowest x, then lowest y, then first) of each square
+    ``cell``, cells in ascending (column, row) order: the first of each cell in
+    ``np.lexsort((y, x, -h, row, column))``, kept on a dense grid of cells
+    (:func:`_cell_maxima_kernel`; Sylva, not in the paper)."""
+    pick = _cell_maxima_kernel(np.ascontiguousarray(xy, dtype=np.float64),
+                               np.ascontiguousarray(h, dtype=np.float64), float(cell), 4 * len(xy) + 1024)
+    if len(pick) or len(xy) == 0:
+        return pick
+    key = np.floor(xy / cell).astype(np.int64)           # a sparse extent or a point off any grid
+    order = np.lexsort((xy[:, 1], xy[:, 0], -h, key[:, 1], key[:, 0]))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = np.any(key[order][1:] != key[order][:-1], axis=1)
+    return order[first]
+
+
+@njit
+def _cell_maxima_kernel(xy, h, cell, max_cells):
+    """:func:`_cell_maxima` on a dense grid; empty when it would exceed ``max_cells`` cells
+    (or a coordinate is not finite)."""
+    n = len(xy)
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    x0, y0, x1, y1 = 0, 0, 0, 0
+    for i in range(n):
+        fx = np.floor(xy[i, 0] / cell)
+        fy = np.floor(xy[i, 1] / cell)
+        if not (abs(fx) < max_cells and abs(fy) < max_cells):
+            return np.empty(0, dtype=np.int64)
+        ix[i], iy[i] = int(fx), int(fy)
+        if i == 0:
+            x0, y0, x1, y1 = ix[i], iy[i], ix[i], iy[i]
+        x0, y0 = min(x0, ix[i]), min(y0, iy[i])
+        x1, y1 = max(x1, ix[i]), max(y1, iy[i])
+    nx, ny = x1 - x0 + 1, y1 - y0 + 1
+    if n == 0 or nx * ny > max_cells:
+        return np.empty(0, dtype=np.int64)
+    best = np.full(nx * ny, -1, dtype=np.int64)
+    kept = 0
+    for i in range(n):
+        c = (ix[i] - x0) * ny + (iy[i] - y0)
+        b = best[c]
+        if b < 0:
+            best[c] = i
+            kept += 1
+        elif h[i] > h[b] or (h[i] == h[b] and (xy[i, 0] < xy[b, 0]
+                                               or (xy[i, 0] == xy[b, 0] and xy[i, 1] < xy[b, 1]))):
+            best[c] = i
+    out = np.empty(kept, dtype=np.int64)
+    j = 0
+    for c in range(nx * ny):
+        if best[c] >= 0:
+            out[j] = best[c]
+            j += 1
+    return out
+
+
 def _local_maxima(xy: np.ndarray, h: np.ndarray, window: Window,
                   progress: Progress, cancelled: CancelCheck, cand=None):
     """Indices of the window maxima among points (xy, h).
 
     ``cand``: indices known to hold every maximum (e.g. the maxima of a
     narrower window); by default the highest point of each grid cell."""
+    from .noise import column_bounds, grid_buckets
+
     if cand is None:
         # A top is the highest point of its grid cell when the cell fits in the smallest window.
-        cell = max(window.min_diameter / 2.0 / np.sqrt(2.0), 1e-3)
-        key = np.floor(xy / cell).astype(np.int64)
-        order = np.lexsort((xy[:, 1], xy[:, 0], -h, key[:, 1], key[:, 0]))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = np.any(key[order][1:] != key[order][:-1], axis=1)
-        cand = order[first]
+        cand = _cell_maxima(xy, h, max(window.min_diameter / 2.0 / np.sqrt(2.0), 1e-3))
     if len(cand) == 0:
         return cand
     radius = window.diameter(h[cand]) / 2.0
     # points bucketed in square cells at least as wide as the widest window
     # radius (and few enough cells for the extent), CSR by cell
-    lo = xy.min(axis=0)
-    span = np.maximum(xy.max(axis=0) - lo, 1e-6)
+    lo, hi = column_bounds(xy)
+    span = np.maximum(hi - lo, 1e-6)
     cell = max(float(radius.max()), float(np.sqrt(span[0] * span[1] / (2.0 * len(xy) + 1024))), 1e-3)
     nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
-    key = np.floor((xy[:, 0] - lo[0]) / cell).astype(np.int64) * ny + np.floor((xy[:, 1] - lo[1]) / cell).astype(np.int64)
-    order = np.argsort(key, kind="stable")
-    starts = np.searchsorted(key[order], np.arange(nx * ny + 1))
+    order, starts, _ = grid_buckets(xy, float(lo[0]), float(lo[1]), cell, nx, ny)
     pts = np.ascontiguousarray(xy[order])
     hs = np.ascontiguousarray(h[order])
     is_top = np.zeros(len(cand), dtype=bool)
@@ -320,10 +372,11 @@ def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
 
     height = _heights(cloud)
     high = np.isfinite(height) & (height >= min_height_m)
-    high = np.nonzero(high & ~isolated_points(cloud, isolation_m, among=high))[0]
+    loc = cloud.local_xyz()
+    high = np.nonzero(high & ~isolated_points(cloud, isolation_m, among=high, loc=loc))[0]
     if len(high) == 0:
         return _ordered(np.zeros((0, 3)), np.zeros(0), cloud.crs)
-    xy = cloud.local_xyz()[high, :2]
+    xy = loc[high, :2]
     h = height[high]
     if apex is not None and apex.diameter_m < window.min_diameter:
         # every maximum of the window is one of the narrow window: test only those

@@ -236,3 +236,72 @@ def test_window_maxima_equal_a_brute_force_search():
     maxima = np.flatnonzero(~higher.any(axis=1))
     expected = maxima[_one_per_plateau(xy[maxima], h[maxima], r[maxima])]   # one per plateau
     assert len(expected) > 10 and np.array_equal(got, expected)
+
+
+# --- the kernels against the numpy code they replaced (kept here as references) -------------
+
+def reference_cell_maxima(xy, h, cell):
+    key = np.floor(xy / cell).astype(np.int64)
+    order = np.lexsort((xy[:, 1], xy[:, 0], -h, key[:, 1], key[:, 0]))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = np.any(key[order][1:] != key[order][:-1], axis=1)
+    return order[first]
+
+
+def reference_local_maxima(xy, h, window):
+    from sylva.core import tops as tops_mod
+
+    cand = reference_cell_maxima(xy, h, max(window.min_diameter / 2.0 / np.sqrt(2.0), 1e-3))
+    radius = window.diameter(h[cand]) / 2.0
+    lo = xy.min(axis=0)
+    span = np.maximum(xy.max(axis=0) - lo, 1e-6)
+    cell = max(float(radius.max()), float(np.sqrt(span[0] * span[1] / (2.0 * len(xy) + 1024))), 1e-3)
+    nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
+    key = np.floor((xy[:, 0] - lo[0]) / cell).astype(np.int64) * ny + np.floor((xy[:, 1] - lo[1]) / cell).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(nx * ny + 1))
+    is_top = tops_mod._window_tops(np.ascontiguousarray(xy[order]), np.ascontiguousarray(h[order]), starts,
+                                   xy[cand], h[cand], radius, float(lo[0]), float(lo[1]), cell, nx, ny)
+    tops = cand[is_top]
+    return tops[tops_mod._one_per_plateau(xy[tops], h[tops], radius[is_top])]
+
+
+def quantised_canopy(n=40000, seed=0):
+    """Centimetre positions and heights: equal heights, equal x and duplicates happen."""
+    rng = np.random.default_rng(seed)
+    xy = np.round(rng.uniform(-10, 90, (n, 2)), 2)
+    h = np.round(2 + 18 * np.abs(np.sin(xy[:, 0] / 4.0) * np.cos(xy[:, 1] / 5.0)), 1)
+    return np.vstack([xy, xy[:200]]), np.r_[h, h[:200]]
+
+
+@pytest.mark.parametrize("cell", [0.3, 1.06, 5.0])
+def test_cell_maxima_are_the_lexsort(cell):
+    from sylva.core.tops import _cell_maxima
+
+    xy, h = quantised_canopy()
+    assert np.array_equal(_cell_maxima(xy, h, cell), reference_cell_maxima(xy, h, cell))
+
+
+def test_cell_maxima_of_a_sparse_extent_sort():
+    from sylva.core.tops import _cell_maxima, _cell_maxima_kernel
+
+    xy = np.array([[0.0, 0.0], [1e8, 5.0], [0.1, 0.2], [1e8, 5.1]])
+    h = np.array([3.0, 4.0, 3.0, 4.0])
+    assert len(_cell_maxima_kernel(xy, h, 1.0, 4 * len(xy) + 1024)) == 0
+    assert np.array_equal(_cell_maxima(xy, h, 1.0), reference_cell_maxima(xy, h, 1.0))
+
+
+@pytest.mark.parametrize("window", [FixedWindow(3.0), FixedWindow(1.2), VariableWindow()])
+def test_local_maxima_are_the_reference(window):
+    from sylva.core.tops import _local_maxima
+
+    xy, h = quantised_canopy(seed=3)
+    got = _local_maxima(xy, h, window, None, None)
+    assert len(got) > 20 and np.array_equal(got, reference_local_maxima(xy, h, window))
+
+
+def test_cell_maxima_kernel_runs_as_python():
+    from sylva.core.tops import _cell_maxima_kernel
+
+    xy, h = quantised_canopy(n=500)
+    assert np.array_equal(_cell_maxima_kernel.py_func(xy, h, 1.06, 10000), _cell_maxima_kernel(xy, h, 1.06, 10000))
