@@ -73,7 +73,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.export.gltf import write_glb
     from ..core.export.model import ExportFrame, TreeModel
     from ..core.export.tiles3d import write_tileset
-    from ..core.forest import _groups
+    from ..core.forest import tree_points
     from ..core.measure import estimate_dbh, tree_metrics
     from ..core.progress import check
     from ..core.reconstruct.billboard import billboard_tree, point_rgb
@@ -87,7 +87,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
     columns = metrics.columns()
     row_of = {int(t): i for i, t in enumerate(metrics.tree_id)}
-    ids, groups = _groups(labels)
+    ids, groups = tree_points(labels)
     models = []
     feedback.info(f"{len(ids)} trees")
     for k, (tree_id, idx) in enumerate(zip(ids, groups)):

@@ -26,6 +26,7 @@ cylinders / branches / trees tables in CRS coordinates.
 """
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass, field
 from typing import Any, List
@@ -33,13 +34,15 @@ from typing import Any, List
 import numpy as np
 
 from .cloud import PointCloud
-from .geometry import (_branch_set, _continuation_cos_arrays, _continuation_from_cos, _forest, _radii_or_default,
-                       _split_branch_set, branch_count, pipe_model_radii, simplify_skeletons,
-                       total_branch_length, tree_meshes, with_radii, wood_volume)
-from .leaves import LeafCards, NeedleClusters, grow_leaves, grow_leaves_batch
-from .measure import TreeMetrics, estimate_dbh
+from .errors import InputError
+from .geometry import (_branch_set, _continuations, _forest, _forest_polylines, _forest_wood, _local_parent, _norm3,
+                       _simplify_forest, _split_branch_set, _tip_counts, _tree_branches, _trusted_skeleton,
+                       pipe_model_radii)
+from .jit import njit
+from .leaves import LeafCards, NeedleClusters, _forest_tip_sections, _grow_leaves, grow_leaves
+from .measure import TreeMetrics, estimate_dbhs
 from .progress import CancelCheck, Progress, check, report
-from .qsm import cylinders_from_skeleton, measure_qsm
+from .qsm import measure_qsm, skeleton_qsms
 from .reconstruct import Hybrid, TreePoints, is_dense_scan, reconstruct_tree
 
 LEAVES = ("auto", "broadleaf", "needles", "none")
@@ -78,32 +81,155 @@ QSM_ORDERS = (1, 2, 3)
 
 
 def _groups(labels: np.ndarray):
+    """(tree ids, point indices of all trees sorted by tree (stable), offsets of each tree's points)."""
     idx = np.flatnonzero(labels > 0)
     order = idx[np.argsort(labels[idx], kind="stable")]
     lab = labels[order]
     cuts = np.flatnonzero(np.diff(lab)) + 1
-    return lab[np.concatenate([[0], cuts])] if len(lab) else np.zeros(0, int), np.split(order, cuts)
+    ids = lab[np.concatenate([[0], cuts])] if len(lab) else np.zeros(0, int)
+    return ids, order, np.r_[0, cuts, len(order)].astype(np.int64) if len(lab) else np.zeros(1, np.int64)
+
+
+def tree_points(labels: np.ndarray):
+    """(tree ids ascending, the point indices of each tree in file order) of per-point ``labels`` (0 = none)."""
+    ids, order, off = _groups(np.asarray(labels))
+    return ids, [order[a:b] for a, b in zip(off[:-1].tolist(), off[1:].tolist())]
 
 
 def is_conical(xyz: np.ndarray, crown_base_z: float) -> bool:
-    """A pointed crown: its upper quarter is much narrower than its widest part (conifers)."""
-    crown = xyz[xyz[:, 2] >= crown_base_z]
-    if len(crown) < 20:
-        return False
-    centre = crown[:, :2].mean(axis=0)
-    r = np.linalg.norm(crown[:, :2] - centre, axis=1)
-    z0, z1 = crown[:, 2].min(), crown[:, 2].max()
-    rel = (crown[:, 2] - z0) / max(z1 - z0, 1e-6)
-    top = r[rel >= 0.75]
-    if len(top) < 3:
-        return False
-    return bool(np.percentile(top, 90) < 0.45 * np.percentile(r, 90))
+    """A pointed crown: its upper quarter is much narrower than its widest part (conifers).
+
+    The crown is the points at or above ``crown_base_z``; it is pointed when the 90th percentile of
+    the horizontal distances to the crown's centre in its top quarter (by height) is under 0.45 times
+    that of the whole crown (Sylva, not in the paper).  Needs 20 crown points and 3 in the top quarter.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    return bool(_conical(xyz, np.array([0, len(xyz)], dtype=np.int64), np.array([crown_base_z], dtype=np.float64))[0])
+
+
+def _conical(xyz: np.ndarray, off: np.ndarray, crown_base_z: np.ndarray) -> np.ndarray:
+    """:func:`is_conical` of the trees whose points are ``xyz[off[t]:off[t + 1]]`` (crown bases ``crown_base_z``)."""
+    p_top, p_all = _crown_spread_kernel(np.ascontiguousarray(xyz, dtype=np.float64), off, crown_base_z)
+    return p_top < 0.45 * p_all               # NaN (too few points) is never conical
+
+
+@njit
+def _crown_spread_kernel(xyz, off, crown_base_z):
+    """Per tree the 90th percentiles of the crown points' horizontal distances to the crown centre, of
+    the top quarter and of all (NaN, NaN when there are under 20 crown points or 3 in the top quarter).
+
+    Written as numpy computes them: the centre is the running sum of the crown points in their order
+    divided by their number, distances are sqrt(dx² + dy²), ``rel = (z - z0) / max(z1 - z0, 1e-6)``
+    and the percentiles numpy's linear interpolation of the order statistics (``b - (b - a)(1 - g)``
+    when g >= 0.5, NaN if a value is NaN).
+    """
+    nt = off.shape[0] - 1
+    out = np.full((2, nt), np.nan)
+    for t in range(nt):
+        a, b = off[t], off[t + 1]
+        zc = crown_base_z[t]
+        n = 0
+        sx = 0.0
+        sy = 0.0
+        z0 = np.inf
+        z1 = -np.inf
+        for i in range(a, b):
+            if xyz[i, 2] >= zc:
+                n += 1
+                sx += xyz[i, 0]
+                sy += xyz[i, 1]
+                z0 = min(z0, xyz[i, 2])
+                z1 = max(z1, xyz[i, 2])
+        if n < 20:
+            continue
+        cx = sx / n
+        cy = sy / n
+        span = z1 - z0
+        if not span >= 1e-6 and span == span:    # Python's max(span, 1e-6); NaN stays NaN
+            span = 1e-6
+        r = np.empty(n)
+        top = np.empty(n)
+        k = 0
+        n_top = 0
+        for i in range(a, b):
+            if xyz[i, 2] >= zc:
+                dx = xyz[i, 0] - cx
+                dy = xyz[i, 1] - cy
+                r[k] = math.sqrt(dx * dx + dy * dy)
+                if (xyz[i, 2] - z0) / span >= 0.75:
+                    top[n_top] = r[k]
+                    n_top += 1
+                k += 1
+        if n_top < 3:
+            continue
+        for j in range(2):
+            v = top[:n_top] if j == 0 else r
+            m = v.shape[0]
+            nan = False
+            for x in v:
+                nan = nan or x != x
+            vi = (m - 1) * 0.9
+            lo = int(math.floor(vi))
+            if nan:
+                out[j, t] = np.nan
+            elif vi >= m - 1:
+                out[j, t] = v.max()
+            else:           # the order statistics lo and lo + 1, interpolated
+                v = np.partition(v, lo)
+                x0 = v[lo]
+                x1 = v[lo + 1:].min()
+                g = vi - lo
+                d = x1 - x0
+                out[j, t] = x1 - d * (1 - g) if g >= 0.5 else x0 + d * g
+    return out[0], out[1]
+
+
+@njit
+def _median_kernel(values, off):
+    """``np.median`` of every slice ``values[off[t]:off[t + 1]]`` (NaN if it holds one; 0.0 + x as numpy)."""
+    nt = off.shape[0] - 1
+    out = np.empty(nt)
+    for t in range(nt):
+        v = values[off[t]:off[t + 1]]
+        n = v.shape[0]
+        nan = False
+        for x in v:
+            nan = nan or x != x
+        if n == 0 or nan:
+            out[t] = np.nan
+            continue
+        v = np.partition(v, (n - 1) // 2)        # (a copy) the middle value, or the lower of the two
+        lo = v[(n - 1) // 2]
+        if n % 2:
+            out[t] = (0.0 + lo) / 1.0
+        else:
+            out[t] = ((0.0 + lo) + v[n // 2:].min()) / 2.0
+    return out
 
 
 def dbh_radii(skeleton, dbh_m: float, options: ModelOptions = ModelOptions()) -> np.ndarray:
     """Pipe-model radii (Hu et al. 2017 §5.5, Eq. 6) scaled so the stem has the diameter ``dbh_m``."""
     stem_r = max(dbh_m, 0.02) / 2  # a 1-point "tree" still gets a visible 2 cm stem
     return pipe_model_radii(skeleton, tip_radius_m=min(options.tip_radius_m, stem_r / 2), trunk_radius_m=stem_r)
+
+
+def _forest_dbh_radii(parent: np.ndarray, off: np.ndarray, trees, dbhs, options: ModelOptions) -> np.ndarray:
+    """:func:`dbh_radii` of the forest's ``trees`` (others 0): the pipe model of all of them in one pass."""
+    nt = len(off) - 1
+    tip = np.ones(nt)         # (the other trees' radii are not used)
+    trunk = np.ones(nt)
+    for t in trees:
+        stem_r = max(dbhs[t], 0.02) / 2
+        tip[t] = min(options.tip_radius_m, stem_r / 2)
+        trunk[t] = stem_r
+        if not (np.isfinite(tip[t]) and tip[t] > 0):
+            raise InputError(f"skeleton: tip_radius_m must be > 0 m, got {tip[t]}")
+        if not (np.isfinite(stem_r) and stem_r > 0):
+            raise InputError(f"skeleton: trunk_radius_m must be > 0 m, got {stem_r}")
+    tree = np.repeat(np.arange(nt), np.diff(off))
+    radii = tip[tree] * _tip_counts(parent) ** (1.0 / 2.0)     # pipe_model_radii, exponent 2
+    radii *= (trunk / radii[off[:-1]])[tree]                    # the root is node 0 of every tree
+    return radii
 
 
 def leaf_mesh(skeleton, kind: str, options: ModelOptions = ModelOptions(), seed: int = 0, branch_set=None):
@@ -127,44 +253,9 @@ def _leaf_method(kind: str, options: ModelOptions):
     return None
 
 
-def _branch_sets(skeletons, shifted, radii) -> list:
-    """Per tree the three branch decompositions its outputs use (see :func:`geometry.branches`), for all trees
-    in one vectorised pass over the forest of their skeletons.
-
-    ``(of the skeleton with radii, of the shifted skeleton with the mesh radii, of the shifted skeleton
-    without radii)`` for the records / QSM / skeleton table, the wood mesh and the leaves.  They differ only
-    where the shift rounds a bend cosine differently or a tie is broken by radius instead of index, so a
-    tree reuses the previous one when its continuation children are equal.
-    """
-    if not skeletons:
-        return []
-    nodes, parent, off = _forest(skeletons)
-    nodes_b, _, _ = _forest(shifted)
-    m = len(nodes)
-    r_a = np.concatenate([np.asarray(r, dtype=np.float64) for r in radii])
-    r_b = np.concatenate([_radii_or_default(sk, None) for sk in shifted])
-    child, par, cos_a = _continuation_cos_arrays(nodes, parent)
-    _, _, cos_b = _continuation_cos_arrays(nodes_b, parent)
-    cont_a = _continuation_from_cos(m, child, par, cos_a, r_a)
-    cont_b = cont_a if (np.array_equal(cos_a, cos_b) and np.array_equal(r_a, r_b)) else \
-        _continuation_from_cos(m, child, par, cos_b, r_b)
-    cont_c = _continuation_from_cos(m, child, par, cos_b, None)
-    bs_a = _split_branch_set(_branch_set(parent, cont_a), off)
-    out = [[bs, bs, bs] for bs in bs_a]
-    bounds = off.tolist()
-    for col, cont, earlier in ((1, cont_b, (0,)), (2, cont_c, (1, 0))):
-        differ = []
-        for t in range(len(skeletons)):
-            sl = slice(bounds[t], bounds[t + 1])
-            same = next((e for e in earlier if np.array_equal(cont[sl], [cont_a, cont_b][e][sl])), None)
-            if same is None:
-                differ.append(t)
-            else:
-                out[t][col] = out[t][same]
-        if differ:
-            for t, bs in zip(differ, _split_branch_set(_branch_set(parent, cont), off, differ)):
-                out[t][col] = bs
-    return [tuple(x) for x in out]
+def _tree_sums(values: np.ndarray, bounds: list) -> list:
+    """``values[a:b].sum()`` of every tree's slice (numpy's pairwise sums, so per tree the same bits)."""
+    return [values[a:b].sum() for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
@@ -172,23 +263,26 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
                 cancelled: CancelCheck = None) -> List[ModelledTree]:
     """Model every tree of ``labels`` (see the module docstring), in tree_id order.
 
-    Reconstruction and DBH go tree by tree; the rest runs batched over all trees of the
-    call (skeleton simplification, branch chains, wood meshes swept in one batch by
-    :func:`~sylva.core.geometry.tree_meshes`, leaves grown in one batch per leaf kind by
-    :func:`~sylva.core.leaves.grow_leaves_batch`), which gives every tree exactly what the
-    per-tree functions (:func:`~sylva.core.geometry.tree_mesh`, :func:`leaf_mesh`, ...) give it.
+    Reconstruction and DBH go tree by tree; the rest runs on the forest of all trees of the
+    call joined into one skeleton (simplification, radii, branch chains, QSMs and records,
+    wood meshes swept in batches of trees, leaves grown in one batch per leaf kind), which
+    gives every tree exactly what the per-tree functions (:func:`~sylva.core.geometry.tree_mesh`,
+    :func:`leaf_mesh`, :func:`~sylva.core.qsm.measure_qsm`, ...) give it.
     """
     local = cloud.local_xyz()
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
     row_of = {int(t): i for i, t in enumerate(metrics.tree_id)}
-    ids, groups = _groups(np.asarray(labels))
+    ids, order, pt_off = _groups(np.asarray(labels))
+    pts, h = local[order], height[order]            # the trees' points, tree by tree
+    grounds = _median_kernel(pts[:, 2] - h, pt_off).tolist()
+    bounds = pt_off.tolist()
     work = []
-    for k, (tree_id, idx) in enumerate(zip(ids, groups)):
+    for k, tree_id in enumerate(ids.tolist()):
         check(cancelled)
         report(progress, 0.9 * k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
         i = row_of[int(tree_id)]
-        xyz = local[idx]
-        ground_z = float(np.median(xyz[:, 2] - height[idx]))
+        xyz = pts[bounds[k]:bounds[k + 1]].copy()      # the methods' own copy, as local[idx] was
+        ground_z = grounds[k]
         method = options.method
         if options.dense_method is not None and is_dense_scan(xyz):
             method = options.dense_method
@@ -203,96 +297,198 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
                                         tree_id=int(tree_id))
         else:
             rec = reconstruct_tree(tree_pts, method)
-        tree_h, crown_d = float(metrics.height[i]), float(metrics.crown_diameter[i])
-        dbh, source = estimate_dbh(xyz, height[idx], tree_h, crown_d)
-        work.append((int(tree_id), idx, i, ground_z, rec, dense_qsm, dbh, source))   # not xyz: memory
+        work.append((int(tree_id), i, ground_z, rec, dense_qsm))
+    rows = [w[1] for w in work]
+    dbhs = estimate_dbhs(pts, h, pt_off, [float(metrics.height[i]) for i in rows],
+                         [float(metrics.crown_diameter[i]) for i in rows])
+    work = [w + d for w, d in zip(work, dbhs)]
     check(cancelled)
     report(progress, 0.9, "skeletons, chains and QSMs")
-    raw = [w[4].skeleton for w in work]
-    simple = simplify_skeletons(raw, options.simplify_m) if options.simplify_m > 0 else raw
-    skeletons, shifted_all, radii_all, dbhs = [], [], [], []
-    for (tree_id, idx, i, ground_z, rec, dense_qsm, dbh, source), skeleton in zip(work, simple):
-        if skeleton.radius.max() > 0:
-            # Dense-scan methods measure radii from fitted cylinders (Yan et al. §4): keep them.
-            radii = skeleton.radius
+    out, forest = _model_forest(cloud, pts, pt_off, work, metrics, options)
+    report(progress, 0.95, "meshes and leaves")
+    _mesh_and_leaf(out, forest, options, cancelled)
+    report(progress, 1.0, "trees modelled")
+    return out
+
+
+def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions):
+    """Skeletons, radii, chains, QSMs and records of the trees of :func:`model_trees` on their joined forest.
+
+    ``pts`` the trees' points (tile-local, tree by tree: ``pt_off``), ``work`` per tree (tree_id, metrics
+    row, ground z, reconstruction, dense QSM or None, DBH, DBH source).  Returns the ModelledTrees
+    (``wood`` / ``leaves`` not set yet) and what :func:`_mesh_and_leaf` needs: (nodes relative to each
+    tree's root, radii, node offsets, branch sets of the wood mesh and of the leaves).
+    """
+    if not work:
+        return [], None
+    raw = [w[3].skeleton for w in work]
+    nodes, parent, off = _forest(raw)
+    radius = np.concatenate([sk.radius for sk in raw])
+    added = np.concatenate([sk.is_added for sk in raw])
+    if options.simplify_m > 0:
+        nodes, parent, radius, added, off = _simplify_forest(nodes, parent, radius, added, off, options.simplify_m)
+    radii, dbhs = _forest_radii(parent, radius, off, work, options)
+    shifted = nodes - np.repeat(nodes[off[:-1]], np.diff(off), axis=0)   # relative to each root (node 0)
+    # the three branch decompositions (geometry.branches): of the skeleton with radii (records, QSM,
+    # skeleton table), of the shifted skeleton with radii (wood mesh) and without radii (leaves)
+    bs_a = _branch_set(parent, _continuations(nodes, parent, radii))
+    bs_b = _branch_set(parent, _continuations(shifted, parent, radii))
+    bs_c = _branch_set(parent, _continuations(shifted, parent, None))
+    boff = _tree_branches(bs_a, off)
+    bounds = pt_off.tolist()
+    top_z = [pts[a:b, 2].max() for a, b in zip(bounds[:-1], bounds[1:])]
+    qsms = skeleton_qsms(nodes, parent, radii, bs_a, off, boff, [w[0] for w in work], [w[2] for w in work],
+                         top_z, [d for d, _ in dbhs], [s for _, s in dbhs])
+    lengths, volumes = _forest_measures(nodes, parent, radii, bs_a, off, boff)
+    kinds = [options.leaves] * len(work)
+    if options.leaves == "auto":
+        conical = _conical(pts, pt_off, np.array([w[2] + metrics.crown_base_height[w[1]] for w in work]))
+        kinds = ["needles" if c else "broadleaf" for c in conical.tolist()]
+    local_parent = _local_parent(parent, off)
+    bases = cloud.from_local(nodes[off[:-1]]).tolist()
+    nb = off.tolist()
+    out = []
+    for t, (w, (dbh, source), qsm, bset) in enumerate(zip(work, dbhs, qsms, _split_branch_set(bs_a, off, boff))):
+        a, b = nb[t], nb[t + 1]
+        qsm_method = "skeleton_edges"
+        if w[4] is not None:
+            qsm, qsm_method = w[4], "bspline_cylinders"
+            qsm.dbh_m, qsm.dbh_source = float(dbh), source
+        record = _record(w, dbh, source, bases[t], len(bset) - 1, lengths[t], volumes[t], kinds[t], qsm, qsm_method,
+                         bounds[t + 1] - bounds[t] < options.min_points)
+        out.append(ModelledTree(w[0], nodes[a].copy(), _trusted_skeleton(nodes[a:b], local_parent[a:b], radii[a:b],
+                                                                         added[a:b]), None, None, record, qsm, bset))
+    return out, (shifted, radii, off, bs_b, bs_c)
+
+
+def _forest_radii(parent: np.ndarray, radius: np.ndarray, off: np.ndarray, work, options: ModelOptions):
+    """Per node the radii of :func:`model_trees` and per tree its (DBH, source).
+
+    A tree whose skeleton has radii keeps them (dense-scan methods measure them from fitted cylinders,
+    Yan et al. §4) and, unless its DBH was measured on the points, takes the DBH of its stem cylinder;
+    the others get the pipe model scaled to their DBH (:func:`dbh_radii`).
+    """
+    bounds = off.tolist()
+    r_max = [radius[a:b].max() for a, b in zip(bounds[:-1], bounds[1:])]   # (raises on an empty skeleton)
+    pipe, dbhs = [], []
+    for t, ((_, _, _, _, dense_qsm, dbh, source), rm) in enumerate(zip(work, r_max)):
+        if rm > 0:
             if dense_qsm is not None and dense_qsm.dbh_source == "measured":
                 dbh, source = dense_qsm.dbh_m, "measured"    # circle fit around the stem cylinder at 1.3 m
             elif source != "measured":
                 if dense_qsm is not None and np.isfinite(dense_qsm.dbh_m):
                     dbh, source = dense_qsm.dbh_m, "cylinder"
                 else:
-                    dbh, source = 2.0 * float(radii[skeleton.root]), "cylinder"
+                    dbh, source = 2.0 * float(radius[bounds[t]]), "cylinder"
         else:
-            radii = dbh_radii(skeleton, dbh, options)
-        skeleton = with_radii(skeleton, radii)
-        base = skeleton.nodes[skeleton.root].copy()
-        shifted = with_radii(type(skeleton)(skeleton.nodes - base, skeleton.parent, radii, skeleton.is_added), radii)
-        skeletons.append(skeleton)
-        shifted_all.append(shifted)
-        radii_all.append(radii)
+            pipe.append(t)
         dbhs.append((dbh, source))
-    bsets = _branch_sets(skeletons, shifted_all, radii_all)
-    out, leaf_jobs = [], []
-    for (tree_id, idx, i, ground_z, rec, dense_qsm, _, _), skeleton, shifted, (dbh, source), \
-            (bset, _, bs_leaves) in zip(work, skeletons, shifted_all, dbhs, bsets):
-        xyz = local[idx]
-        if dense_qsm is not None:
-            qsm, qsm_method = dense_qsm, "bspline_cylinders"
-            qsm.dbh_m, qsm.dbh_source = float(dbh), source
-        else:
-            cyl, bpar = cylinders_from_skeleton(skeleton, branch_set=bset)
-            qsm = measure_qsm(cyl, bpar, xyz, base_z=ground_z, tree_id=int(tree_id))
-            qsm.dbh_m, qsm.dbh_source = float(dbh), source     # the record's DBH, not the pipe model's
-            qsm_method = "skeleton_edges"
-        kind = options.leaves
-        if kind == "auto":
-            kind = "needles" if is_conical(xyz, ground_z + metrics.crown_base_height[i]) else "broadleaf"
-        leaf_jobs.append((kind, zlib.crc32(f"leaves-{int(tree_id)}".encode()), bs_leaves))
-        noise = len(idx) < options.min_points
-        quality = "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok")
-        record = {
-            "tree_id": int(tree_id),
-            "base_x": 0.0, "base_y": 0.0, "base_z": 0.0,  # filled in CRS units below
-            "dbh": float(dbh), "dbh_source": source,
-            "n_branches": int(branch_count(skeleton, branch_set=bset)),
-            "total_branch_length": float(total_branch_length(skeleton, branch_set=bset)),
-            "wood_volume": float(wood_volume(skeleton, branch_set=bset)),
-            "method": rec.method,
-            "visited_fraction": float(rec.visited_fraction),
-            "quality": quality,
-            "leaves": kind,
-            "flags": ",".join(rec.flags),
-            "qsm_method": qsm_method,
-            "n_cylinders": int(len(qsm.cylinders["id"])),
-            "trunk_volume": float(qsm.trunk_volume_m3),
-            "total_volume": float(qsm.total_volume_m3),
-            **{f"n_branches_order_{o}": int(qsm.branch_counts.get(o, 0)) for o in QSM_ORDERS},
-            "branch_counts": ",".join(f"{o}:{c}" for o, c in sorted(qsm.branch_counts.items())),
-        }
-        base = skeleton.nodes[skeleton.root].copy()
-        crs_base = cloud.from_local(base[None, :])[0]
-        record.update(base_x=float(crs_base[0]), base_y=float(crs_base[1]), base_z=float(crs_base[2]))
-        out.append(ModelledTree(int(tree_id), base, skeleton, None, None, record, qsm, bset))
-    report(progress, 0.95, "meshes and leaves")
+    radii = radius
+    if pipe:
+        is_pipe = np.zeros(len(work), dtype=bool)
+        is_pipe[pipe] = True
+        radii = np.where(np.repeat(is_pipe, np.diff(off)), _forest_dbh_radii(parent, off, pipe, [d for d, _ in dbhs],
+                                                                            options), radius)
+    if not np.all(np.isfinite(radii)) or (radii < 0).any():
+        raise InputError("skeleton: radii must be finite and >= 0 m")
+    return radii, dbhs
+
+
+def _forest_measures(nodes, parent, radii, bs, off, branch_off):
+    """Per tree :func:`~sylva.core.geometry.total_branch_length` and :func:`~sylva.core.geometry.wood_volume`
+    of its skeleton with radii and branch set ``bs`` (a forest's), as those functions compute them."""
+    nt = len(off) - 1
+    child = np.flatnonzero(parent >= 0)
+    par = parent[child]
+    seg = _norm3(nodes[child] - nodes[par])
+    r2 = radii[child]
+    r1 = np.where(bs.continuation[par] == child, radii[par], r2)
+    frusta = np.pi * seg * (r1 * r1 + r1 * r2 + r2 * r2) / 3.0
+    seg_bounds = (off - np.arange(nt + 1)).tolist()                  # one segment per non-root node
+    seg_of = np.zeros(len(parent))
+    seg_of[child] = seg
+    stem_len, stem_bounds = _trunk_values(seg_of, bs, branch_off)
+    total, volume = _tree_sums(seg, seg_bounds), _tree_sums(frusta, seg_bounds)
+    stem = _tree_sums(stem_len, stem_bounds)
+    two = (np.diff(off) >= 2).tolist()
+    return ([float(total[t] - stem[t]) if two[t] else 0.0 for t in range(nt)],
+            [float(volume[t]) if two[t] else 0.0 for t in range(nt)])
+
+
+def _record(w, dbh, source, base, n_branches, length, volume, kind, qsm, qsm_method, noise) -> dict:
+    """The record (trees table row) of one tree of :func:`model_trees`."""
+    tree_id, rec = w[0], w[3]
+    return {
+        "tree_id": int(tree_id),
+        "base_x": float(base[0]), "base_y": float(base[1]), "base_z": float(base[2]),
+        "dbh": float(dbh), "dbh_source": source,
+        "n_branches": int(n_branches),
+        "total_branch_length": length,
+        "wood_volume": volume,
+        "method": rec.method,
+        "visited_fraction": float(rec.visited_fraction),
+        "quality": "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok"),
+        "leaves": kind,
+        "flags": ",".join(rec.flags),
+        "qsm_method": qsm_method,
+        "n_cylinders": int(len(qsm.cylinders["id"])),
+        "trunk_volume": float(qsm.trunk_volume_m3),
+        "total_volume": float(qsm.total_volume_m3),
+        **{f"n_branches_order_{o}": int(qsm.branch_counts.get(o, 0)) for o in QSM_ORDERS},
+        "branch_counts": ",".join(f"{o}:{c}" for o, c in sorted(qsm.branch_counts.items())),
+    }
+
+
+def _trunk_values(values: np.ndarray, bs, branch_off: np.ndarray):
+    """``values`` of the trunk nodes of every tree but its root (chain order) and their per-tree bounds."""
+    trunks = branch_off[:-1]
+    first = bs.offsets[trunks] + 1
+    n = np.diff(bs.offsets)[trunks] - 1
+    bounds = np.r_[0, np.cumsum(n)]
+    pos = np.repeat(first - bounds[:-1], n) + np.arange(bounds[-1])
+    return values[bs.nodes[pos]], bounds.tolist()
+
+
+def _mesh_and_leaf(out: List[ModelledTree], forest, options: ModelOptions, cancelled: CancelCheck) -> None:
+    """Wood meshes (Hu et al. 2017 §5.5) and leaves (§5.6) of :func:`model_trees`' trees, in batches of
+    about ``_BATCH_NODES`` skeleton nodes.
+
+    ``forest`` = (nodes relative to each tree's root, radii, node offsets, branch sets of the mesh
+    and of the leaves) from :func:`_model_forest`.  The centre lines and tip sections are cut for all
+    trees at once; the tubes of a batch are swept together, its leaves grown in one call per kind.
+    """
+    if not out:
+        return
+    shifted, radii, off, bs_mesh, bs_leaf = forest
+    lod = options.lod
+    lines = _forest_polylines(shifted, radii, bs_mesh, _tree_branches(bs_mesh, off), lod)
+    leaf_boff = _tree_branches(bs_leaf, off)
+    kinds = [t.record["leaves"] for t in out]
+    seeds = [zlib.crc32(f"leaves-{t.tree_id}".encode()) for t in out]
+    sections = {}
     # batches of trees of about _BATCH_NODES skeleton nodes: the temporaries stay small on large tiles
-    sizes = np.array([len(sk) for sk in shifted_all], dtype=np.int64)
+    sizes = np.diff(off)
     cuts = np.r_[0, np.flatnonzero(np.diff(np.cumsum(sizes) // _BATCH_NODES)) + 1, len(out)]
     for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
         check(cancelled)
-        for t, wood in zip(out[a:b], tree_meshes(shifted_all[a:b], lod=options.lod,
-                                                 branch_sets=[x[1] for x in bsets[a:b]])):
+        for t, wood in zip(out[a:b], _forest_wood(lines, a, b, lod)):
             t.wood = wood
-        for kind in sorted({job[0] for job in leaf_jobs[a:b]}):
+        for kind in sorted(set(kinds[a:b])):
             method = _leaf_method(kind, options)
             if method is None:
                 continue
-            which = [k for k in range(a, b) if leaf_jobs[k][0] == kind]
-            grown = grow_leaves_batch([shifted_all[k] for k in which], method, [leaf_jobs[k][1] for k in which],
-                                      branch_sets=[leaf_jobs[k][2] for k in which])
-            for k, leaves in zip(which, grown):
+            ksegs = int(method.tip_segments)
+            if ksegs not in sections:
+                sections[ksegs] = _forest_tip_sections(bs_leaf, leaf_boff, ksegs)
+            sect, tip_tree = sections[ksegs]
+            which = np.array([k for k in range(a, b) if kinds[k] == kind], dtype=np.int64)
+            chosen = np.zeros(len(out), dtype=bool)
+            chosen[which] = True
+            pick = chosen[tip_tree]
+            grown = _grow_leaves(shifted, radii, sect[pick], np.searchsorted(which, tip_tree[pick]),
+                                 off[which], method, [seeds[k] for k in which])
+            for k, leaves in zip(which.tolist(), grown):
                 out[k].leaves = leaves
-    report(progress, 1.0, "trees modelled")
-    return out
 
 
 def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
@@ -305,28 +501,25 @@ def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
     from .geometry import branches
     from .table import VectorTable
 
-    ids, n_chains, radius, part_len = [], [], [], []
-    local = []
-    for t in trees:
-        sk = t.skeleton
-        bset = t.branches if t.branches is not None else branches(sk, sk.radius)
-        off = bset.offsets
-        lens = np.diff(off)
-        real = np.flatnonzero(lens >= 2)
-        if len(real) == len(lens):
-            nodes = bset.nodes
-        else:
-            keep = np.repeat(lens >= 2, lens)
-            nodes = bset.nodes[keep]
-        local.append(sk.nodes[nodes])
-        radius.append(sk.radius[nodes])
-        part_len.append(lens[real])
-        ids.append(t.tree_id)
-        n_chains.append(len(real))
-    n_chains = np.array(n_chains, dtype=np.int64)
+    bsets = [t.branches if t.branches is not None else branches(t.skeleton, t.skeleton.radius) for t in trees]
+    ids = [t.tree_id for t in trees]
+    n_chains = np.zeros(len(trees), dtype=np.int64)
     if trees:
-        coords = np.column_stack([cloud.from_local(np.concatenate(local).reshape(-1, 3)), np.concatenate(radius)])
-        wkb = _multilinestring_zm_wkbs(coords, np.concatenate(part_len).astype(np.int64), n_chains)
+        # all trees' chains at once: node indices into the joined skeletons, chain lengths per tree
+        node_off = np.r_[0, np.cumsum([len(t.skeleton) for t in trees])]
+        nodes = np.concatenate([bs.nodes for bs in bsets]) + np.repeat(node_off[:-1], [len(bs.nodes) for bs in bsets])
+        offsets = np.concatenate([bs.offsets for bs in bsets])
+        last = np.cumsum([len(bs.offsets) for bs in bsets]) - 1          # each tree's closing offset
+        lens = np.delete(np.diff(offsets), last[:-1])
+        real = lens >= 2
+        chain_tree = np.repeat(np.arange(len(trees)), [len(bs) for bs in bsets])
+        n_chains = np.bincount(chain_tree[real], minlength=len(trees)).astype(np.int64)
+        nodes = nodes[np.repeat(real, lens)]
+        local = np.concatenate([t.skeleton.nodes for t in trees])[nodes]
+        radius = np.concatenate([t.skeleton.radius for t in trees])[nodes]
+        part_len = lens[real]
+        coords = np.column_stack([cloud.from_local(local.reshape(-1, 3)), radius])
+        wkb = _multilinestring_zm_wkbs(coords, part_len.astype(np.int64), n_chains)
     else:
         wkb = []
     return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
@@ -353,20 +546,33 @@ def _multilinestring_zm_wkbs(coords: np.ndarray, part_len: np.ndarray, n_parts: 
     size[feat_item] = 9
     size[part_item] = 9 + 32 * part_len
     start = np.r_[0, np.cumsum(size)]
-    buf = np.empty(int(start[-1]), dtype=np.uint8)
     hdr = np.empty(nf + npart, dtype=_WKB_HEADER)
     hdr["order"] = 1
     hdr["type"][feat_item], hdr["count"][feat_item] = 3005, n_parts
     hdr["type"][part_item], hdr["count"][part_item] = 3002, part_len
-    buf[start[:-1, None] + np.arange(9)] = hdr.view(np.uint8).reshape(-1, 9)
-    if len(coords):
-        row_part = np.repeat(np.arange(npart), part_len)
-        row_local = np.arange(len(coords)) - np.repeat(np.r_[0, np.cumsum(part_len)[:-1]], part_len)
-        row_off = start[part_item][row_part] + 9 + 32 * row_local
-        buf[row_off[:, None] + np.arange(32)] = np.ascontiguousarray(coords, dtype="<f8").view(np.uint8).reshape(-1, 32)
+    body = np.zeros(nf + npart, dtype=np.int64)
+    body[part_item] = 32 * part_len
+    buf = _wkb_pack(hdr.view(np.uint8).reshape(-1, 9), body,
+                    np.ascontiguousarray(coords, dtype="<f8").view(np.uint8).reshape(-1), int(start[-1]))
     ends = start[feat_item + 1 + n_parts].tolist()
     begins = start[feat_item].tolist()
     return [buf[a:b].tobytes() for a, b in zip(begins, ends)]
+
+
+@njit
+def _wkb_pack(headers, body, data, size):
+    """The WKB buffer: every item's 9 header bytes, each followed by its next ``body`` bytes of ``data``."""
+    buf = np.empty(size, np.uint8)
+    pos = 0
+    src = 0
+    for it in range(headers.shape[0]):
+        buf[pos:pos + 9] = headers[it]
+        pos += 9
+        n = body[it]
+        buf[pos:pos + n] = data[src:src + n]
+        pos += n
+        src += n
+    return buf
 
 
 def qsm_tables(trees: List[ModelledTree], cloud: PointCloud, crs=None):

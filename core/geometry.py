@@ -29,8 +29,9 @@ geometry"):
 Measurements for the trees table: :func:`wood_volume` (frusta between
 nodes), :func:`branch_count`, :func:`total_branch_length`.
 
-All loops over nodes are vectorised: per-depth-level passes for radii,
-pointer jumping for chains, and one segmented parallel prefix product of the
+The sequential passes over nodes (subtree tip counts for radii, continuation
+children and chains, simplification) are compiled loops (:mod:`sylva.core.jit`),
+the rest is vectorised, with one segmented parallel prefix product of the
 double-reflection rotations for the frames of all tubes at once.  The batch
 forms :func:`branches_batch`, :func:`simplify_skeletons`,
 :func:`tree_mesh_arrays_batch` and :func:`tree_meshes` run the same passes over
@@ -39,12 +40,14 @@ per polyline), so each tree gets exactly what the single-tree call gives it.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Iterator, List, Optional, Tuple, Union
 
 import numpy as np
 
 from .errors import InputError
+from .jit import njit
 from .reconstruct.model import Skeleton
 
 __all__ = [
@@ -147,8 +150,8 @@ def pipe_model_radii(skeleton: Skeleton, tip_radius_m: float = 0.01, exponent: f
         r_tip = tip_radius_m,      r_i^e = sum_{children c} r_c^e
 
     which telescopes to ``r_i = tip_radius_m * N_i^(1/e)`` with ``N_i`` the
-    number of tips in the subtree of ``i`` — computed with one vectorised
-    pass per depth level.  Radii are therefore non-increasing from the root to
+    number of tips in the subtree of ``i`` — computed with one backward pass
+    over the nodes.  Radii are therefore non-increasing from the root to
     the tips, and the frustum between a node and its child tapers as Hu's
     "adjusted upper radius" does.  With ``trunk_radius_m`` all radii are scaled
     by one factor so the root radius equals it (the relation is homogeneous,
@@ -163,9 +166,7 @@ def pipe_model_radii(skeleton: Skeleton, tip_radius_m: float = 0.01, exponent: f
     m = len(skeleton)
     if m == 0:
         return np.zeros(0)
-    tips = (skeleton.n_children() == 0).astype(np.float64)
-    n_tips = _subtree_sum(skeleton.parent, tips, depth_levels(skeleton))
-    radii = tip_radius_m * n_tips ** (1.0 / exponent)
+    radii = tip_radius_m * _tip_counts(skeleton.parent) ** (1.0 / exponent)
     if trunk_radius_m is not None:
         if not (np.isfinite(trunk_radius_m) and trunk_radius_m > 0):
             raise InputError(f"{_tree_name(skeleton)}: trunk_radius_m must be > 0 m, got {trunk_radius_m}")
@@ -173,6 +174,32 @@ def pipe_model_radii(skeleton: Skeleton, tip_radius_m: float = 0.01, exponent: f
     if inplace:
         skeleton.radius = radii.copy()
     return radii
+
+
+def _tip_counts(parent: np.ndarray) -> np.ndarray:
+    """Number of tips (nodes without children) in the subtree of every node, as float64.
+
+    For one tree or a forest of concatenated trees (parents precede children).  Sums of whole
+    numbers: exact, so equal to any other summation order.
+    """
+    return _tip_count_kernel(np.ascontiguousarray(parent, dtype=np.int64))
+
+
+@njit
+def _tip_count_kernel(parent):
+    """Subtree tip counts by one backward pass (children after parents); see :func:`_tip_counts`."""
+    m = parent.shape[0]
+    kids = np.zeros(m, np.int64)
+    for i in range(m):
+        if parent[i] >= 0:
+            kids[parent[i]] += 1
+    acc = np.zeros(m)
+    for i in range(m - 1, -1, -1):
+        if kids[i] == 0:
+            acc[i] += 1.0
+        if parent[i] >= 0:
+            acc[parent[i]] += acc[i]
+    return acc
 
 
 def allometric_radii(skeleton: Skeleton, root_radius_m: float = 0.15, gamma: float = 0.5,
@@ -309,40 +336,70 @@ class BranchSet:
         return iter(self.chains)
 
 
-def _continuation_cos(skeleton: Skeleton):
-    """(child, parent, cos) per segment: cosine of the bend from the incoming segment, rounded to 9 digits."""
-    return _continuation_cos_arrays(skeleton.nodes, skeleton.parent)
+@njit
+def _continuation_kernel(nodes, parent, radii, by_radius):
+    """Per node the child its chain continues into (-1 at tips), see :func:`branches`; plain loops for numba.
 
-
-def _continuation_cos_arrays(nodes: np.ndarray, parent: np.ndarray):
-    """:func:`_continuation_cos` of node / parent arrays (one tree or a forest of concatenated trees)."""
-    child = np.flatnonzero(parent >= 0)
-    par = parent[child]
-    if len(child) == 0:
-        return child, par, np.zeros(0)
-    gp = parent[par]
-    incoming = np.where((gp >= 0)[:, None], nodes[par] - nodes[np.maximum(gp, 0)], [0.0, 0.0, 1.0])
-    out = nodes[child] - nodes[par]
-    cos = (incoming * out).sum(axis=1) / np.maximum(
-        np.linalg.norm(incoming, axis=1) * np.linalg.norm(out, axis=1), 1e-12)
-    return child, par, np.round(cos, 9)  # exact ties are decided by radius, then by index
-
-
-def _continuation_from_cos(m: int, child, par, cos, radii: Optional[np.ndarray] = None) -> np.ndarray:
-    cont = np.full(m, -1, dtype=np.int64)
-    if len(child) == 0:
-        return cont
-    r = radii[child] if radii is not None else np.zeros(len(child))
-    order = np.lexsort((-child, r, cos, par))
-    p_sorted = par[order]
-    last = np.r_[np.flatnonzero(np.diff(p_sorted)), len(order) - 1]
-    cont[p_sorted[last]] = child[order][last]
+    The bend cosine of a child is the cosine between the incoming segment (the parent's own
+    segment, +z at the root) and the child's segment, rounded to 9 digits (``np.round``) so
+    near-equal bends tie; the largest cosine wins, ties go to the larger ``radii`` (when
+    ``by_radius``), then to the lower index.  Dot products are written out as 0 + x·x' + y·y' + z·z',
+    the order numpy's row sums use, so the cosines are those of the vectorised formulation.
+    Needs ``parent[i] < i`` (every Skeleton); NaN cosines rank above all others, as in a sort.
+    """
+    m = parent.shape[0]
+    cont = np.full(m, -1, np.int64)
+    best_cos = np.zeros(m)
+    best_r = np.zeros(m)
+    for i in range(m):
+        p = parent[i]
+        if p < 0:
+            continue
+        g = parent[p]
+        if g >= 0:
+            ix = nodes[p, 0] - nodes[g, 0]
+            iy = nodes[p, 1] - nodes[g, 1]
+            iz = nodes[p, 2] - nodes[g, 2]
+        else:
+            ix, iy, iz = 0.0, 0.0, 1.0
+        ox = nodes[i, 0] - nodes[p, 0]
+        oy = nodes[i, 1] - nodes[p, 1]
+        oz = nodes[i, 2] - nodes[p, 2]
+        den = math.sqrt(ix * ix + iy * iy + iz * iz) * math.sqrt(ox * ox + oy * oy + oz * oz)
+        if den < 1e-12:
+            den = 1e-12
+        c = np.rint((0.0 + ix * ox + iy * oy + iz * oz) / den * 1e9) / 1e9
+        r = radii[i] if by_radius else 0.0
+        j = cont[p]
+        if j < 0:
+            better = True
+        else:
+            b = best_cos[p]
+            if c != c or b != b:                      # NaN sorts last: it beats any number
+                better = (c != c) and (b == b)
+                same = (c != c) and (b != b)
+            else:
+                better = c > b
+                same = c == b
+            if not better and same:
+                better = r > best_r[p]
+        if better:
+            cont[p] = i
+            best_cos[p] = c
+            best_r[p] = r
     return cont
 
 
 def _continuation_child(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> np.ndarray:
     """Per node, the child with the smallest bending angle (ties: the thicker one), or -1."""
-    return _continuation_from_cos(len(skeleton), *_continuation_cos(skeleton), radii)
+    return _continuations(skeleton.nodes, skeleton.parent, radii)
+
+
+def _continuations(nodes: np.ndarray, parent: np.ndarray, radii: Optional[np.ndarray] = None) -> np.ndarray:
+    """:func:`_continuation_kernel` of one tree or of a forest of concatenated trees (``radii`` None: by index)."""
+    r = np.zeros(len(parent)) if radii is None else np.ascontiguousarray(radii, dtype=np.float64)
+    return _continuation_kernel(np.ascontiguousarray(nodes, dtype=np.float64).reshape(-1, 3),
+                                np.ascontiguousarray(parent, dtype=np.int64), r, radii is not None)
 
 
 def branches(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> BranchSet:
@@ -354,7 +411,7 @@ def branches(skeleton: Skeleton, radii: Optional[np.ndarray] = None) -> BranchSe
     ties go to the thicker child by ``radii``), so the trunk is one chain and
     every segment belongs to exactly one chain.  Chains are numbered by their
     first own node, so a parent branch always precedes its children.
-    Vectorised (pointer jumping to each chain's head).
+    One compiled pass for the continuation children, one for the chains.
     """
     skeleton = _check_skeleton(skeleton)
     return _branch_set(skeleton.parent, _continuation_child(skeleton, radii))
@@ -374,8 +431,7 @@ def branches_batch(skeletons, radii=None) -> List[BranchSet]:
     if radii is not None and any(x is not None for x in radii):
         r = np.concatenate([np.zeros(len(sk)) if x is None else np.asarray(x, dtype=np.float64).reshape(-1)
                             for sk, x in zip(skeletons, radii)])
-    cont = _continuation_from_cos(len(nodes), *_continuation_cos_arrays(nodes, parent), r)
-    return _split_branch_set(_branch_set(parent, cont), off)
+    return _split_branch_set(_branch_set(parent, _continuations(nodes, parent, r)), off)
 
 
 def _forest(skeletons):
@@ -383,67 +439,114 @@ def _forest(skeletons):
     sizes = np.array([len(sk) for sk in skeletons], dtype=np.int64)
     off = np.r_[0, np.cumsum(sizes)]
     nodes = np.concatenate([sk.nodes for sk in skeletons]).reshape(-1, 3)
-    parent = np.concatenate([np.where(sk.parent >= 0, sk.parent + o, -1)
-                             for sk, o in zip(skeletons, off[:-1].tolist())]).astype(np.int64)
-    return nodes, parent, off
+    parent = np.concatenate([sk.parent for sk in skeletons]).astype(np.int64)
+    return nodes, np.where(parent >= 0, parent + np.repeat(off[:-1], sizes), -1), off
 
 
-def _split_branch_set(bs: BranchSet, node_off: np.ndarray, trees=None) -> List[BranchSet]:
-    """The per-tree BranchSets of a forest's BranchSet (trees = node ranges ``node_off``), or of ``trees`` only."""
-    nt = len(node_off) - 1
+def _tree_branches(bs: BranchSet, node_off: np.ndarray) -> np.ndarray:
+    """Branch offsets (n_trees + 1,) of a forest's BranchSet: the chains of tree ``t`` are
+    ``branch_off[t]:branch_off[t + 1]`` (its root starts the first; an empty tree owns none)."""
+    node_off = np.asarray(node_off, dtype=np.int64)
     sizes = np.diff(node_off)
-    # first chain of every tree (its root starts one); empty trees own no chain
-    first = np.full(nt + 1, len(bs), dtype=np.int64)
+    first = np.full(len(node_off), len(bs), dtype=np.int64)
     nonempty = np.flatnonzero(sizes > 0)
     first[nonempty] = bs.node_branch[node_off[nonempty]]
-    for t in range(nt - 1, -1, -1):      # an empty tree's range starts where the next tree's starts
-        if sizes[t] == 0:
-            first[t] = first[t + 1]
-    first_l, off_l, noff_l = first.tolist(), bs.offsets.tolist(), np.asarray(node_off).tolist()
+    # an empty tree's range starts where the next tree's starts
+    return np.minimum.accumulate(first[::-1])[::-1]
+
+
+def _split_branch_set(bs: BranchSet, node_off: np.ndarray, branch_off: Optional[np.ndarray] = None) -> List[BranchSet]:
+    """The per-tree BranchSets of a forest's BranchSet (trees = node ranges ``node_off``).
+
+    Indices are made local to each tree in one vectorised pass; the trees' arrays are views of it.
+    """
+    node_off = np.asarray(node_off, dtype=np.int64)
+    nt = len(node_off) - 1
+    boff = _tree_branches(bs, node_off) if branch_off is None else branch_off
+    nb_t = np.diff(boff)
+    tree_of_node = np.repeat(np.arange(nt), np.diff(node_off))
+    tree_of_branch = np.repeat(np.arange(nt), nb_t)
+    n0_b = node_off[:-1][tree_of_branch]
+    nodes = bs.nodes - np.repeat(n0_b, np.diff(bs.offsets))
+    # tree t's offsets are branch_off[t] .. branch_off[t + 1] (one more than its chains)
+    tree_of_off = np.repeat(np.arange(nt), nb_t + 1)
+    offsets = bs.offsets[np.arange(len(tree_of_off)) - tree_of_off] - bs.offsets[boff[:-1]][tree_of_off]
+    bparent = np.where(bs.parent >= 0, bs.parent - boff[:-1][tree_of_branch], -1)
+    attach = np.where(bs.attach >= 0, bs.attach - n0_b, -1)
+    node_branch = bs.node_branch - boff[:-1][tree_of_node]
+    cont = np.where(bs.continuation >= 0, bs.continuation - node_off[:-1][tree_of_node], -1)
+    b_l, n_l, c_l = boff.tolist(), node_off.tolist(), bs.offsets[boff].tolist()
     out = []
-    for t in (range(nt) if trees is None else trees):
-        b0, b1 = first_l[t], first_l[t + 1]
-        n0, n1 = noff_l[t], noff_l[t + 1]
-        c0, c1 = off_l[b0], off_l[b1]
-        bpar = bs.parent[b0:b1]
-        att = bs.attach[b0:b1]
-        cont = bs.continuation[n0:n1]
-        out.append(BranchSet(bs.nodes[c0:c1] - n0, bs.offsets[b0:b1 + 1] - c0, np.where(bpar >= 0, bpar - b0, -1),
-                             np.where(att >= 0, att - n0, -1), bs.node_branch[n0:n1] - b0, bs.order[b0:b1],
-                             np.where(cont >= 0, cont - n0, -1)))
+    for t in range(nt):
+        b0, b1, n0, n1 = b_l[t], b_l[t + 1], n_l[t], n_l[t + 1]
+        out.append(BranchSet(nodes[c_l[t]:c_l[t + 1]], offsets[b0 + t:b1 + t + 1], bparent[b0:b1], attach[b0:b1],
+                             node_branch[n0:n1], bs.order[b0:b1], cont[n0:n1]))
     return out
 
 
 def _branch_set(parent: np.ndarray, cont: np.ndarray) -> BranchSet:
-    """The :class:`BranchSet` of a tree given each node's continuation child (see :func:`branches`)."""
-    m = len(parent)
-    if m == 0:
+    """The :class:`BranchSet` of a tree (or forest) given each node's continuation child (see :func:`branches`)."""
+    if len(parent) == 0:
         e = np.zeros(0, dtype=np.int64)
         return BranchSet(e, np.zeros(1, dtype=np.int64), e, e, e, e, e)
-    idx = np.arange(m)
-    is_start = parent < 0
-    is_start[~is_start] = cont[parent[~is_start]] != idx[~is_start]
-    head = np.where(is_start, idx, parent)
-    while True:  # pointer jumping: each node finds the first node of its chain
-        nxt = head[head]
-        if np.array_equal(nxt, head):
-            break
-        head = nxt
-    starts = np.flatnonzero(is_start)
-    node_branch = np.searchsorted(starts, head)
-    order = np.lexsort((idx, node_branch))
-    counts = np.bincount(node_branch, minlength=len(starts))
-    attach = parent[starts].copy()
-    bparent = np.where(attach >= 0, node_branch[np.maximum(attach, 0)], -1)
-    has = (attach >= 0).astype(np.int64)
-    full_off = np.r_[0, np.cumsum(counts + has)]
-    full = np.empty(full_off[-1], dtype=np.int64)
-    full[full_off[:-1][has == 1]] = attach[has == 1]
-    local = np.arange(m) - np.r_[0, np.cumsum(counts)][:-1][node_branch[order]]
-    full[full_off[node_branch[order]] + has[node_branch[order]] + local] = order
-    border = _depth(bparent.astype(np.int64))   # parents precede children: order = depth in the branch tree
-    return BranchSet(full, full_off.astype(np.int64), bparent.astype(np.int64), attach.astype(np.int64),
-                     node_branch.astype(np.int64), border, cont)
+    full, full_off, bparent, attach, node_branch, border = _chains_kernel(
+        np.ascontiguousarray(parent, dtype=np.int64), np.ascontiguousarray(cont, dtype=np.int64))
+    return BranchSet(full, full_off, bparent, attach, node_branch, border, cont)
+
+
+@njit
+def _chains_kernel(parent, cont):
+    """Branch chains from continuation children in one forward pass (parents precede children).
+
+    A chain starts at the root and at every node its parent does not continue into, chains are
+    numbered by their first own node, and a chain lists its attachment node (the parent of its
+    first node, if any) then its nodes by index.  Returns (nodes, offsets, parent branch,
+    attachment node, branch of every node, branch order = depth in the branch tree).
+    """
+    m = parent.shape[0]
+    node_branch = np.empty(m, np.int64)
+    nb = 0
+    for i in range(m):
+        p = parent[i]
+        if p < 0 or cont[p] != i:
+            node_branch[i] = nb
+            nb += 1
+        else:
+            node_branch[i] = node_branch[p]
+    start = np.empty(nb, np.int64)
+    count = np.zeros(nb, np.int64)
+    for i in range(m):
+        b = node_branch[i]
+        if count[b] == 0:
+            start[b] = i
+        count[b] += 1
+    attach = np.empty(nb, np.int64)
+    bparent = np.empty(nb, np.int64)
+    border = np.empty(nb, np.int64)
+    offsets = np.empty(nb + 1, np.int64)
+    offsets[0] = 0
+    for b in range(nb):
+        a = parent[start[b]]
+        attach[b] = a
+        if a >= 0:
+            bparent[b] = node_branch[a]
+            border[b] = border[bparent[b]] + 1        # the parent branch starts before b
+        else:
+            bparent[b] = -1
+            border[b] = 0
+        offsets[b + 1] = offsets[b] + count[b] + (1 if a >= 0 else 0)
+    nodes = np.empty(offsets[nb], np.int64)
+    fill = np.empty(nb, np.int64)
+    for b in range(nb):
+        fill[b] = offsets[b]
+        if attach[b] >= 0:
+            nodes[fill[b]] = attach[b]
+            fill[b] += 1
+    for i in range(m):
+        b = node_branch[i]
+        nodes[fill[b]] = i
+        fill[b] += 1
+    return nodes, offsets, bparent, attach, node_branch, border
 
 
 # --------------------------------------------------------------------------- batched polylines
@@ -460,7 +563,7 @@ def _dedupe(points, radii, offsets, eps=_EPS):
     if n > 1:
         same = np.ones(n, dtype=bool)
         same[offsets[:-1]] = False  # first point of each line is never a duplicate
-        d = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        d = _norm3(np.diff(points, axis=0))
         keep[1:] = ~(same[1:] & (d <= eps))
     lid = _seg_ids(offsets)[keep]
     counts = np.bincount(lid, minlength=len(offsets) - 1)
@@ -483,7 +586,7 @@ def _tangents(points: np.ndarray, offsets: np.ndarray, unit: bool = True) -> np.
     prv = np.where(first, np.arange(n), prv)
     t = points[nxt] - points[prv]
     if unit:
-        norm = np.linalg.norm(t, axis=1, keepdims=True)
+        norm = _norm3(t)[:, None]
         t = t / np.where(norm > 0, norm, 1.0)
     return t
 
@@ -503,7 +606,7 @@ def _hermite_batch(points, radii, offsets, samples):
     seg_ok = np.zeros(n, dtype=bool)
     seg_ok[:-1] = lid[:-1] == lid[1:]
     s0 = np.flatnonzero(seg_ok)               # segment s0 -> s0 + 1
-    d = np.linalg.norm(points[s0 + 1] - points[s0], axis=1)
+    d = _norm3(points[s0 + 1] - points[s0])
     # derivative w.r.t. arc length at every point: (p_{i+1} - p_{i-1}) / (d_{i-1} + d_i)
     dlen = np.zeros(n)       # length of the segment leaving each point
     dlen[s0] = d
@@ -580,6 +683,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _norm3(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` of (..., 3) vectors, the same bits (sqrt((x² + y²) + z²)), without
+    numpy's slow reduction over a length-3 axis."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return np.sqrt((x * x + y * y) + z * z)
+
+
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products of (n, 3) arrays."""
     return np.einsum("ij,ij->i", a, b)
@@ -592,7 +702,7 @@ def _initial_normal(t: np.ndarray) -> np.ndarray:
     steep = np.abs(t[:, 2]) > 0.999
     r = _cross(ref, t)
     r[steep] = _cross(np.array([0.0, 1.0, 0.0]), t[steep])
-    return r / np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
+    return r / np.maximum(_norm3(r)[:, None], 1e-300)
 
 
 def _qrotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -665,7 +775,7 @@ def _rmf_batch(points, tangents, offsets, normal0=None):
         r0[:] = np.asarray(normal0, dtype=np.float64).reshape(-1, 3)
     r = _qrotate(quat, r0[lid])
     r -= _dot(r, tangents)[:, None] * tangents
-    norm = np.linalg.norm(r, axis=1, keepdims=True)
+    norm = _norm3(r)[:, None]
     bad = norm[:, 0] < 1e-12
     if bad.any():
         r[bad] = _initial_normal(tangents[bad])
@@ -858,37 +968,138 @@ def tree_mesh_arrays(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
                                   None if branch_set is None else [branch_set])[0]
 
 
-def _tree_polylines(skeleton: Skeleton, lod: LevelOfDetail, radii, branch_set):
-    """(points, radii, line lengths, branch set, kept branches) of the tubes of one tree, before smoothing."""
-    skeleton = _check_skeleton(skeleton)
-    rad = _radii_or_default(skeleton, radii)
-    bset = branch_set if branch_set is not None else branches(skeleton, rad)
-    nb = len(bset)
-    if nb == 0:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), bset, np.zeros(0, bool)
-    offsets = bset.offsets
-    lengths = np.diff(offsets)
-    idx = bset.nodes
-    pts = skeleton.nodes[idx]
-    r = rad[idx]
-    side = bset.attach >= 0
-    # a side branch starts with its own (child) radius at the attachment node
-    r[offsets[:-1][side & (lengths > 1)]] = r[offsets[:-1][side & (lengths > 1)] + 1]
-    base_r = r[offsets[:-1]]
-    keep = base_r >= lod.min_radius_m
-    keep[0] = True
-    # a pruned branch prunes all it carries: AND along the path to the trunk (pointer jumping)
-    anc = bset.parent.copy()
-    live = np.flatnonzero(anc >= 0)
-    while len(live):
-        keep[live] &= keep[anc[live]]
-        anc[live] = anc[anc[live]]
-        live = live[anc[live] >= 0]
-    if not keep.all():
-        take = keep[np.repeat(np.arange(nb), lengths)]
-        pts, r = pts[take], r[take]
-        lengths = lengths[keep]
-    return pts, r, lengths, bset, keep
+@dataclass
+class _Polylines:
+    """The tube centre lines of a forest's trees before smoothing (see :func:`_forest_polylines`).
+
+    ``points``/``radii`` of all kept lines, ``lengths`` points per kept line, ``kept`` (n_branches,)
+    which chains are meshed, ``line_off`` / ``point_off`` (n_trees + 1,) each tree's kept lines and
+    their points, ``branch_off`` each tree's chains.
+    """
+
+    points: np.ndarray
+    radii: np.ndarray
+    lengths: np.ndarray
+    kept: np.ndarray
+    line_off: np.ndarray
+    point_off: np.ndarray
+    branch_off: np.ndarray
+
+
+def _forest_polylines(nodes: np.ndarray, radii: np.ndarray, bs: BranchSet, branch_off: np.ndarray,
+                      lod: Union[int, LevelOfDetail]) -> _Polylines:
+    """The tube centre lines of every tree of a forest (its BranchSet ``bs``, tree ``t`` owning chains
+    ``branch_off[t]:branch_off[t + 1]``), as :func:`tree_mesh_arrays` builds them for each tree.
+
+    A side branch starts with its own (child) radius at the attachment node; chains whose base
+    radius is under ``lod.min_radius_m`` are pruned with all they carry, a tree's trunk never.
+    """
+    lod = _lod(lod)
+    pts, r, lengths, kept, line_off = _polyline_kernel(
+        np.ascontiguousarray(nodes, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64), bs.nodes,
+        bs.offsets, bs.parent, bs.attach, np.asarray(branch_off, dtype=np.int64), float(lod.min_radius_m))
+    point_off = np.r_[0, np.cumsum(lengths)][line_off]
+    return _Polylines(pts, r, lengths, kept, line_off, point_off, np.asarray(branch_off))
+
+
+@njit
+def _polyline_kernel(nodes, radii, chain, offsets, bparent, attach, branch_off, min_radius):
+    """The kept chains' points and radii of :func:`_forest_polylines` in one pass over the chains
+    (parents before children): a chain is kept when its base radius (its own, for a side branch) is
+    at least ``min_radius`` and its parent chain is kept, a tree's trunk always.  Returns (points,
+    radii, points per kept chain, kept (n_branches,), kept chains per tree as offsets)."""
+    nb = offsets.shape[0] - 1
+    nt = branch_off.shape[0] - 1
+    kept = np.zeros(nb, np.bool_)
+    n_pts = 0
+    n_lines = 0
+    line_off = np.zeros(nt + 1, np.int64)
+    for t in range(nt):
+        for b in range(branch_off[t], branch_off[t + 1]):
+            a, e = offsets[b], offsets[b + 1]
+            first = a + 1 if attach[b] >= 0 and e - a > 1 else a      # a side branch starts with its own radius
+            keep = b == branch_off[t] or radii[chain[first]] >= min_radius
+            if bparent[b] >= 0:
+                keep = keep and kept[bparent[b]]
+            kept[b] = keep
+            if keep:
+                n_pts += e - a
+                n_lines += 1
+        line_off[t + 1] = n_lines
+    pts = np.empty((n_pts, 3))
+    r = np.empty(n_pts)
+    lengths = np.empty(n_lines, np.int64)
+    k = 0
+    line = 0
+    for b in range(nb):
+        if kept[b]:
+            a, e = offsets[b], offsets[b + 1]
+            lengths[line] = e - a
+            line += 1
+            for j in range(a, e):
+                for c in range(3):
+                    pts[k, c] = nodes[chain[j], c]
+                r[k] = radii[chain[j]]
+                k += 1
+            if attach[b] >= 0 and e - a > 1:
+                r[k - (e - a)] = radii[chain[a + 1]]
+    return pts, r, lengths, kept, line_off
+
+
+def _forest_wood_arrays(lines: _Polylines, a: int, b: int, lod: Union[int, LevelOfDetail]) -> list:
+    """(vertices, faces, face branch) of the wood of trees ``a:b`` of :func:`_forest_polylines`, swept in one batch."""
+    lod = _lod(lod)
+    l0, l1 = lines.line_off[a], lines.line_off[b]
+    p0, p1 = lines.point_off[a], lines.point_off[b]
+    lines_per_tree = np.diff(lines.line_off[a:b + 1])
+    kept = [np.flatnonzero(lines.kept[b0:b1]) for b0, b1 in
+            zip(lines.branch_off[a:b].tolist(), lines.branch_off[a + 1:b + 1].tolist())]
+    if l1 == l0:
+        e = np.zeros(0, dtype=np.int64)
+        return [(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), e) for _ in range(b - a)]
+    offsets = np.r_[0, np.cumsum(lines.lengths[l0:l1])].astype(np.int64)
+    pts, r, offsets, _ = _dedupe(lines.points[p0:p1], lines.radii[p0:p1], offsets)
+    pts, r, offsets = _hermite_batch(pts, r, offsets, lod.samples_per_segment)
+    verts, faces, face_line = _tube_batch(pts, r, offsets, lod.sides, cap=True)
+    if b - a == 1:
+        groups = [(verts, faces, face_line)]
+    else:
+        groups = _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, lod.sides)
+    return [(v, f, k[fl]) for (v, f, fl), k in zip(groups, kept)]
+
+
+def _forest_wood(lines: _Polylines, a: int, b: int, lod: Union[int, LevelOfDetail]) -> list:
+    """:func:`tree_meshes` of trees ``a:b`` of :func:`_forest_polylines` (one trimesh each)."""
+    import trimesh
+
+    out = []
+    for v, f, fb in _forest_wood_arrays(lines, a, b, lod):
+        mesh = trimesh.Trimesh(v, f, process=False)
+        mesh.metadata["face_branch"] = fb
+        out.append(mesh)
+    return out
+
+
+def _join_branch_sets(bsets: List[BranchSet], node_off: np.ndarray):
+    """One forest BranchSet of per-tree BranchSets (trees = node ranges ``node_off``) and its branch offsets."""
+    nb = np.array([len(bs) for bs in bsets], dtype=np.int64)
+    boff = np.r_[0, np.cumsum(nb)]
+    coff = np.r_[0, np.cumsum([len(bs.nodes) for bs in bsets])].astype(np.int64)
+    n0, b0, c0 = node_off[:-1].tolist(), boff[:-1].tolist(), coff[:-1].tolist()
+
+    def cat(arrays):
+        return np.concatenate(arrays).astype(np.int64) if arrays else np.zeros(0, dtype=np.int64)
+
+    def shift(x, d):
+        return np.where(x >= 0, x + d, -1)
+
+    nodes = cat([bs.nodes + n for bs, n in zip(bsets, n0)])
+    offsets = cat([bs.offsets[:-1] + c for bs, c in zip(bsets, c0)] + [coff[-1:]])
+    joined = BranchSet(nodes, offsets, cat([shift(bs.parent, b) for bs, b in zip(bsets, b0)]),
+                       cat([shift(bs.attach, n) for bs, n in zip(bsets, n0)]),
+                       cat([bs.node_branch + b for bs, b in zip(bsets, b0)]), cat([bs.order for bs in bsets]),
+                       cat([shift(bs.continuation, n) for bs, n in zip(bsets, n0)]))
+    return joined, boff
 
 
 def tree_mesh_arrays_batch(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=None,
@@ -900,29 +1111,20 @@ def tree_mesh_arrays_batch(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=
     arrays (same values, vertex and face order) a call for it alone gives.
     """
     lod = _lod(lod)
-    skeletons = list(skeletons)
+    skeletons = [_check_skeleton(sk) for sk in skeletons]
     nt = len(skeletons)
+    if nt == 0:
+        return []
     radii = [None] * nt if radii is None else list(radii)
     branch_sets = [None] * nt if branch_sets is None else list(branch_sets)
-    prep = [_tree_polylines(sk, lod, r, bs) for sk, r, bs in zip(skeletons, radii, branch_sets)]
-    lines_per_tree = np.array([len(p[2]) for p in prep], dtype=np.int64)
-    if lines_per_tree.sum() == 0:
-        e = np.zeros(0, dtype=np.int64)
-        return [TreeMeshParts(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), e, p[3], p[4]) for p in prep]
-    pts = np.concatenate([p[0] for p in prep])
-    r = np.concatenate([p[1] for p in prep])
-    offsets = np.r_[0, np.cumsum(np.concatenate([p[2] for p in prep]))].astype(np.int64)
-    pts, r, offsets, _ = _dedupe(pts, r, offsets)
-    pts, r, offsets = _hermite_batch(pts, r, offsets, lod.samples_per_segment)
-    verts, faces, face_line = _tube_batch(pts, r, offsets, lod.sides, cap=True)
-    if nt == 1:
-        groups = [(verts, faces, face_line)]
-    else:
-        groups = _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, lod.sides)
-    out = []
-    for (v, f, fl), (_, _, _, bset, keep) in zip(groups, prep):
-        out.append(TreeMeshParts(v, f, np.flatnonzero(keep)[fl], bset, keep))
-    return out
+    rad = [_radii_or_default(sk, r) for sk, r in zip(skeletons, radii)]
+    bsets = [bs if bs is not None else branches(sk, r) for sk, r, bs in zip(skeletons, rad, branch_sets)]
+    nodes, _, off = _forest(skeletons)
+    joined, boff = _join_branch_sets(bsets, off)
+    lines = _forest_polylines(nodes, np.concatenate(rad), joined, boff, lod)
+    return [TreeMeshParts(v, f, fb, bs, lines.kept[b0:b1])
+            for (v, f, fb), bs, b0, b1 in zip(_forest_wood_arrays(lines, 0, nt, lod), bsets,
+                                              boff[:-1].tolist(), boff[1:].tolist())]
 
 
 def _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, sides):
@@ -932,42 +1134,75 @@ def _split_tube_batch(verts, faces, face_line, offsets, lines_per_tree, sides):
     point ``i`` at ``j * n + i``, then the first caps, then the last caps) and keeps the faces
     in their batch order, which is the order of the tree alone.
     """
-    nt = len(lines_per_tree)
-    line_off = np.r_[0, np.cumsum(lines_per_tree)]
-    n = int(offsets[-1])
-    k = np.diff(offsets)
-    capped = k >= 2
-    nb = int(capped.sum())
-    cap_rank = np.cumsum(capped) - capped            # index of each capped line among the capped lines
-    pt_off = offsets[line_off]                       # points of tree t: pt_off[t] .. pt_off[t + 1]
-    cap_off = np.r_[0, np.cumsum(capped)][line_off]  # capped lines of tree t: cap_off[t] .. cap_off[t + 1]
-    n_t = np.diff(pt_off)
-    c_t = np.diff(cap_off)
-    v_t = n_t * sides + 2 * c_t
-    v_off = np.r_[0, np.cumsum(v_t)]
-    # new position of every batch vertex
-    new = np.empty(len(verts), dtype=np.int64)
-    point = np.arange(n)
-    tree_of_point = np.repeat(np.arange(nt), n_t)
-    local = point - pt_off[tree_of_point]
-    j = np.arange(sides)[:, None]
-    new[(j * n + point).ravel()] = (v_off[tree_of_point] + j * n_t[tree_of_point] + local).ravel()
-    caps = np.flatnonzero(capped)
-    tree_of_cap = np.repeat(np.arange(nt), c_t)
-    cap_local = cap_rank[caps] - cap_off[tree_of_cap]
-    base = v_off[tree_of_cap] + n_t[tree_of_cap] * sides
-    new[n * sides + np.arange(nb)] = base + cap_local
-    new[n * sides + nb + np.arange(nb)] = base + c_t[tree_of_cap] + cap_local
-    out_v = np.empty_like(verts)
-    out_v[new] = verts
-    tree_of_line = np.repeat(np.arange(nt), lines_per_tree)
-    face_tree = tree_of_line[face_line]
-    order = np.argsort(face_tree, kind="stable")
-    f_off = np.r_[0, np.cumsum(np.bincount(face_tree, minlength=nt))]
-    out_f = new[faces[order]] - v_off[face_tree[order]][:, None]
-    out_l = face_line[order] - line_off[face_tree[order]]
+    line_off = np.r_[0, np.cumsum(lines_per_tree)].astype(np.int64)
+    out_v, out_f, out_l, v_off, f_off = _split_tube_kernel(
+        np.ascontiguousarray(verts, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64),
+        np.ascontiguousarray(face_line, dtype=np.int64), np.asarray(offsets, dtype=np.int64), line_off, int(sides))
     vb, fb = v_off.tolist(), f_off.tolist()
-    return [(out_v[vb[t]:vb[t + 1]], out_f[fb[t]:fb[t + 1]], out_l[fb[t]:fb[t + 1]]) for t in range(nt)]
+    return [(out_v[vb[t]:vb[t + 1]], out_f[fb[t]:fb[t + 1]], out_l[fb[t]:fb[t + 1]])
+            for t in range(len(lines_per_tree))]
+
+
+@njit
+def _split_tube_kernel(verts, faces, face_line, offsets, line_off, sides):
+    """The reordering of :func:`_split_tube_batch` in one pass over points, caps and faces (a stable
+    counting sort of the faces by tree); returns (vertices, faces, face lines, vertex and face offsets)."""
+    n = offsets[offsets.shape[0] - 1]
+    nt = line_off.shape[0] - 1
+    nl = offsets.shape[0] - 1
+    tree_of_line = np.empty(nl, np.int64)
+    for t in range(nt):
+        for line in range(line_off[t], line_off[t + 1]):
+            tree_of_line[line] = t
+    nb = 0
+    for line in range(nl):
+        if offsets[line + 1] - offsets[line] >= 2:
+            nb += 1
+    n_t = np.zeros(nt, np.int64)           # points and capped lines of every tree
+    c_t = np.zeros(nt, np.int64)
+    for line in range(nl):
+        t = tree_of_line[line]
+        n_t[t] += offsets[line + 1] - offsets[line]
+        if offsets[line + 1] - offsets[line] >= 2:
+            c_t[t] += 1
+    v_off = np.zeros(nt + 1, np.int64)
+    for t in range(nt):
+        v_off[t + 1] = v_off[t] + n_t[t] * sides + 2 * c_t[t]
+    new = np.empty(verts.shape[0], np.int64)
+    cap = 0
+    for t in range(nt):
+        p0 = offsets[line_off[t]]
+        base = v_off[t] + n_t[t] * sides
+        c0 = cap
+        for line in range(line_off[t], line_off[t + 1]):
+            for i in range(offsets[line], offsets[line + 1]):
+                for j in range(sides):
+                    new[j * n + i] = v_off[t] + j * n_t[t] + (i - p0)
+            if offsets[line + 1] - offsets[line] >= 2:
+                new[n * sides + cap] = base + (cap - c0)
+                new[n * sides + nb + cap] = base + c_t[t] + (cap - c0)
+                cap += 1
+    out_v = np.empty_like(verts)
+    for v in range(verts.shape[0]):
+        for c in range(3):
+            out_v[new[v], c] = verts[v, c]
+    nf = faces.shape[0]
+    f_off = np.zeros(nt + 1, np.int64)
+    for f in range(nf):
+        f_off[tree_of_line[face_line[f]] + 1] += 1
+    for t in range(nt):
+        f_off[t + 1] += f_off[t]
+    fill = f_off[:nt].copy()
+    out_f = np.empty((nf, 3), np.int64)
+    out_l = np.empty(nf, np.int64)
+    for f in range(nf):
+        t = tree_of_line[face_line[f]]
+        pos = fill[t]
+        fill[t] += 1
+        for c in range(3):
+            out_f[pos, c] = new[faces[f, c]] - v_off[t]
+        out_l[pos] = face_line[f] - line_off[t]
+    return out_v, out_f, out_l, v_off, f_off
 
 
 def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
@@ -1081,69 +1316,141 @@ def simplify_skeleton(skeleton: Skeleton, tolerance_m: float = 0.05, max_passes:
 
     Branching nodes, tips and the root stay.  Each pass removes an independent set of
     nodes (no removed node's parent is removed in the same pass, alternating by depth
-    parity), so the tolerance holds against the nodes kept; vectorised per pass.
+    parity), so the tolerance holds against the nodes kept; one compiled loop.
     Radii, when present, are carried by the kept nodes.
     """
     return simplify_skeletons([skeleton], tolerance_m, max_passes)[0]
 
 
 def simplify_skeletons(skeletons, tolerance_m: float = 0.05, max_passes: int = 8) -> List[Skeleton]:
-    """:func:`simplify_skeleton` of many skeletons, each pass vectorised over all of them at once.
+    """:func:`simplify_skeleton` of many skeletons, all passes in one compiled loop over all of them.
 
     Every tree keeps its own stopping rule (it stops when it has fewer than three nodes or a
     pass after the first drops nothing), so each result equals a call for that tree alone.
     """
     skeletons = [_check_skeleton(sk) for sk in skeletons]
-    nt = len(skeletons)
-    if nt == 0:
+    if not skeletons:
         return []
     nodes, parent, off = _forest(skeletons)
-    sizes = np.diff(off)
     radius = np.concatenate([sk.radius for sk in skeletons])
     added = np.concatenate([sk.is_added for sk in skeletons])
-    tree = np.repeat(np.arange(nt), sizes)
-    active = np.ones(nt, dtype=bool)
-    for k in range(max_passes):
-        m_t = np.bincount(tree, minlength=nt)
-        active &= m_t >= 3
-        if not active.any():
-            break
-        m = len(nodes)
-        kids = np.bincount(parent[parent >= 0], minlength=m)
-        only_child = np.full(m, -1, dtype=np.int64)
-        has_parent = np.flatnonzero(parent >= 0)
-        only_child[parent[has_parent]] = has_parent  # valid where kids == 1
-        cand = np.flatnonzero((kids == 1) & (parent >= 0) & active[tree])
-        depth = _depth(parent)
-        cand = cand[depth[cand] % 2 == k % 2]
-        if len(cand) == 0:
-            continue
-        p, c = nodes[parent[cand]], nodes[only_child[cand]]
-        seg = c - p
-        length2 = np.maximum((seg * seg).sum(axis=1), 1e-18)
-        t = np.clip(((nodes[cand] - p) * seg).sum(axis=1) / length2, 0.0, 1.0)
-        dist = np.linalg.norm(nodes[cand] - (p + t[:, None] * seg), axis=1)
-        drop = cand[dist <= tolerance_m]
-        if k >= 1:   # a tree with candidates whose pass drops nothing stops
-            tried = np.zeros(nt, dtype=bool)
-            tried[tree[cand]] = True
-            dropped = np.zeros(nt, dtype=bool)
-            dropped[tree[drop]] = True
-            active &= ~(tried & ~dropped)
-        if len(drop) == 0:
-            continue
-        new_parent = parent.copy()
-        new_parent[only_child[drop]] = parent[drop]
-        keep = np.ones(m, dtype=bool)
-        keep[drop] = False
-        index = np.cumsum(keep) - 1
-        kept_parent = new_parent[keep]
-        parent = np.where(kept_parent >= 0, index[np.maximum(kept_parent, 0)], -1)
-        nodes, radius, added, tree = nodes[keep], radius[keep], added[keep], tree[keep]
-    off = np.r_[0, np.cumsum(np.bincount(tree, minlength=nt))].tolist()
-    out = []
-    for t in range(nt):
+    nodes, parent, radius, added, off = _simplify_forest(nodes, parent, radius, added, off, tolerance_m, max_passes)
+    local = _local_parent(parent, off)
+    bounds = off.tolist()
+    return [_trusted_skeleton(nodes[a:b], local[a:b], radius[a:b], added[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _trusted_skeleton(nodes: np.ndarray, parent: np.ndarray, radius: np.ndarray, is_added: np.ndarray) -> Skeleton:
+    """A :class:`Skeleton` of arrays that are valid by construction (a slice of a forest of valid
+    skeletons: float64 (m, 3) nodes, int64 parents before their children and one root, float64
+    radii, bool flags), without ``Skeleton``'s checks and conversions (Sylva, not in the paper)."""
+    sk = object.__new__(Skeleton)
+    sk.nodes, sk.parent, sk.radius, sk.is_added = nodes, parent, radius, is_added
+    return sk
+
+
+def _local_parent(parent: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Forest parents (global indices, -1 at roots) made relative to each tree's first node."""
+    tree = np.repeat(np.arange(len(off) - 1), np.diff(off))
+    return np.where(parent >= 0, parent - off[:-1][tree], -1)
+
+
+def _simplify_forest(nodes, parent, radius, added, off, tolerance_m: float, max_passes: int = 8):
+    """:func:`simplify_skeletons` of a forest (see :func:`_forest`): its kept nodes as a forest
+    (nodes, parents, radii, added flags, node offsets)."""
+    return _simplify_kernel(np.ascontiguousarray(nodes, dtype=np.float64), np.ascontiguousarray(parent, dtype=np.int64),
+                            np.ascontiguousarray(radius, dtype=np.float64), np.ascontiguousarray(added, dtype=np.bool_),
+                            np.asarray(off, dtype=np.int64), float(tolerance_m), int(max_passes))
+
+
+@njit
+def _simplify_kernel(nodes, parent, radius, added, off, tol, max_passes):
+    """The passes of :func:`simplify_skeleton` over a forest, tree by tree; returns the kept nodes as a
+    forest (nodes, parents, radii, added flags, node offsets).
+
+    Pass ``k`` looks at the pass-through nodes (one child, a parent) of depth parity ``k % 2`` of the
+    trees still active and drops those within ``tol`` of the segment parent -> child, the child
+    taking the dropped node's parent (no dropped node is the parent or child of another, so the
+    pass is independent of the order).  A tree stops when it has fewer than three nodes, or when a
+    pass after the first finds candidates but drops none.  Sums are written out as 0 + x + y + z,
+    the order of numpy's row sums.
+    """
+    m = parent.shape[0]
+    alive = np.ones(m, np.bool_)
+    par = parent.copy()
+    kids = np.zeros(m, np.int64)
+    only = np.full(m, -1, np.int64)
+    depth = np.zeros(m, np.int64)
+    drop = np.zeros(m, np.bool_)
+    for t in range(off.shape[0] - 1):          # the trees are independent: one after the other
         a, b = off[t], off[t + 1]
-        par = parent[a:b]
-        out.append(Skeleton(nodes[a:b], np.where(par >= 0, par - a, -1), radius[a:b], added[a:b]))
-    return out
+        size = b - a
+        for k in range(max_passes):
+            if size < 3:
+                break
+            for i in range(a, b):
+                kids[i] = 0
+            for i in range(a, b):
+                if alive[i]:
+                    p = par[i]
+                    if p >= 0:
+                        kids[p] += 1
+                        only[p] = i
+                        depth[i] = depth[p] + 1
+                    else:
+                        depth[i] = 0
+            tried = False
+            n_drop = 0
+            for i in range(a, b):
+                drop[i] = False
+                if not alive[i] or kids[i] != 1 or par[i] < 0 or depth[i] % 2 != k % 2:
+                    continue
+                p = par[i]
+                c = only[i]
+                sx = nodes[c, 0] - nodes[p, 0]
+                sy = nodes[c, 1] - nodes[p, 1]
+                sz = nodes[c, 2] - nodes[p, 2]
+                length2 = sx * sx + sy * sy + sz * sz
+                if length2 < 1e-18:
+                    length2 = 1e-18
+                u = (0.0 + (nodes[i, 0] - nodes[p, 0]) * sx + (nodes[i, 1] - nodes[p, 1]) * sy
+                     + (nodes[i, 2] - nodes[p, 2]) * sz) / length2
+                if u == u:                                 # np.clip(u, 0, 1); NaN stays NaN
+                    if not u > 0.0:
+                        u = 0.0
+                    if not u < 1.0:
+                        u = 1.0
+                dx = nodes[i, 0] - (nodes[p, 0] + u * sx)
+                dy = nodes[i, 1] - (nodes[p, 1] + u * sy)
+                dz = nodes[i, 2] - (nodes[p, 2] + u * sz)
+                tried = True
+                if math.sqrt(dx * dx + dy * dy + dz * dz) <= tol:
+                    drop[i] = True
+                    n_drop += 1
+            if n_drop == 0:
+                if k >= 1 and tried:     # a pass after the first with candidates that drops nothing stops
+                    break
+                continue
+            for i in range(a, b):
+                if drop[i]:
+                    par[only[i]] = par[i]
+                    alive[i] = False
+            size -= n_drop
+    index = np.cumsum(alive) - 1
+    mk = index[m - 1] + 1 if m else 0
+    out_nodes = np.empty((mk, 3))
+    out_parent = np.empty(mk, np.int64)
+    out_radius = np.empty(mk)
+    out_added = np.empty(mk, np.bool_)
+    out_off = np.zeros(off.shape[0], np.int64)
+    for t in range(off.shape[0] - 1):
+        out_off[t + 1] = out_off[t]
+        for i in range(off[t], off[t + 1]):
+            if alive[i]:
+                k = index[i]
+                out_nodes[k, 0], out_nodes[k, 1], out_nodes[k, 2] = nodes[i, 0], nodes[i, 1], nodes[i, 2]
+                out_parent[k] = index[par[i]] if par[i] >= 0 else -1
+                out_radius[k] = radius[i]
+                out_added[k] = added[i]
+                out_off[t + 1] += 1
+    return out_nodes, out_parent, out_radius, out_added, out_off

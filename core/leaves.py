@@ -20,21 +20,24 @@ needle spray (the usual conifer billboard).  Azimuths, insertion angles, roll
 and size get seeded random jitter.  Textures come from
 :func:`sylva.core.textures.leaf_texture` (drawn by Sylva, never copied).
 
-Everything is vectorised over all tips and leaves of a tree, or of many trees
-at once (:func:`grow_leaves_batch`, same result per tree).  Cards are
-single-sided quads: render them with a double-sided, alpha-masked material.
+All tips and leaves of a tree, or of many trees at once (:func:`grow_leaves_batch`,
+same result per tree), are built in one compiled pass (angles and random draws by
+numpy).  Cards are single-sided quads: render them with a double-sided,
+alpha-masked material.
 Texture coordinates follow the OBJ/OpenGL convention (v = 0 at the petiole,
 the bottom row of the image; glTF writers flip v).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Optional, Union
 
 import numpy as np
 
 from .errors import InputError
-from .geometry import _cross, branches
+from .geometry import _forest, _norm3, branches
+from .jit import njit
 from .reconstruct.model import Skeleton
 from .textures import leaf_aspect, leaf_texture, _shape_name
 
@@ -169,42 +172,176 @@ class LeafMesh:
         return mesh
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(n > 0, n, 1.0)
+@njit
+def _leaf_kernel(nodes, radii, sect, live, seglen, total, frac, cphi, sphi, cia, sia, cro, sro, scale, face_up,
+                 length_m, half_w_m, crossed, card0, dir_step):
+    """The leaves of the tip sections ``sect[live]`` (Hu et al. 2017 §5.6, see :func:`grow_leaves`) given
+    the trigonometry of their angles; plain loops for numba.
+
+    Per tip ``i``: the unit directions of its K segments (a zero-length one takes the next), the
+    reference normal (horizontal at the first segment, carried along by minimal rotations); per leaf
+    ``j`` its segment, position, twig frame, radial and blade directions (rolled, turned to face
+    up), base point and card corners.  ``seglen`` / ``total`` are numpy's segment lengths and their
+    sums, ``cphi``/``sphi`` cos/sin of the azimuths, ``cia``/``sia`` of the insertion angles,
+    ``cro``/``sro`` of the roll (numpy's too).  Every expression is written as the numpy formulation
+    it replaced computes it (cross products a1 b2 - a2 b1, ..., dot products 0 + x + y + z), so the
+    results are its bits.  Returns base, axis, twig (t, L, 3) and the card corners (cards, 4, 3):
+    leaf ``j`` of tip ``i`` in direction ``e`` (two crossed ones, or one) is card
+    ``card0[i] + e * dir_step[i] + j``.
+    """
+    nt, K = live.shape[0], seglen.shape[1]
+    L = frac.shape[0]
+    ncross = 2 if crossed else 1
+    base = np.empty((nt, L, 3))
+    axis = np.empty((nt, L, 3))
+    twig = np.empty((nt, L, 3))
+    corners = np.empty((ncross * nt * L, 4, 3))
+    d = np.empty((K, 3))
+    ref = np.empty((K, 3))
+    seg = np.empty((K, 3))
+    cum = np.zeros(K + 1)
+    w = np.empty((2, 3))
+    for i in range(nt):
+        tip = live[i]
+        for q in range(K):
+            for c in range(3):
+                seg[q, c] = nodes[sect[tip, q + 1], c] - nodes[sect[tip, q], c]
+            n = seglen[tip, q] if seglen[tip, q] > 0 else 1.0
+            for c in range(3):
+                d[q, c] = seg[q, c] / n
+            cum[q + 1] = seglen[tip, q] if q == 0 else cum[q] + seglen[tip, q]      # np.cumsum
+        for q in range(K - 2, -1, -1):
+            if seglen[tip, q] <= 0:
+                for c in range(3):
+                    d[q, c] = d[q + 1, c]
+        # horizontal normal z x d, or y x d when d is vertical
+        r0 = 0.0 * d[0, 2] - 1.0 * d[0, 1]
+        r1 = 1.0 * d[0, 0] - 0.0 * d[0, 2]
+        r2 = 0.0 * d[0, 1] - 0.0 * d[0, 0]
+        if math.sqrt(r0 * r0 + r1 * r1 + r2 * r2) < 1e-6:
+            r0 = 1.0 * d[0, 2] - 0.0 * d[0, 1]
+            r1 = 0.0 * d[0, 0] - 0.0 * d[0, 2]
+            r2 = 0.0 * d[0, 1] - 1.0 * d[0, 0]
+        n = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        n = n if n > 0 else 1.0
+        ref[0, 0], ref[0, 1], ref[0, 2] = r0 / n, r1 / n, r2 / n
+        for q in range(1, K):
+            # minimal rotation taking d[q - 1] to d[q], applied to ref[q - 1]
+            a0, a1, a2 = d[q - 1, 0], d[q - 1, 1], d[q - 1, 2]
+            b0, b1, b2 = d[q, 0], d[q, 1], d[q, 2]
+            v0, v1, v2 = ref[q - 1, 0], ref[q - 1, 1], ref[q - 1, 2]
+            cq = 0.0 + a0 * b0 + a1 * b1 + a2 * b2
+            if cq > -0.999999:
+                k0 = a1 * b2 - a2 * b1
+                k1 = a2 * b0 - a0 * b2
+                k2 = a0 * b1 - a1 * b0
+                f = (0.0 + k0 * v0 + k1 * v1 + k2 * v2) / (1.0 + cq)
+                u0 = v0 * cq + (k1 * v2 - k2 * v1) + k0 * f
+                u1 = v1 * cq + (k2 * v0 - k0 * v2) + k1 * f
+                u2 = v2 * cq + (k0 * v1 - k1 * v0) + k2 * f
+            else:
+                u0, u1, u2 = v0, v1, v2
+            n = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            n = n if n > 0 else 1.0
+            ref[q, 0], ref[q, 1], ref[q, 2] = u0 / n, u1 / n, u2 / n
+        for j in range(L):
+            s = total[tip] * frac[j]
+            q = 0
+            for e in range(1, K):
+                if cum[e] <= s:
+                    q += 1
+            q = min(max(q, 0), K - 1)
+            loc = (s - cum[q]) / (seglen[tip, q] if seglen[tip, q] > 0 else 1.0)
+            t0, t1, t2 = d[q, 0], d[q, 1], d[q, 2]
+            g = 0.0 + ref[q, 0] * t0 + ref[q, 1] * t1 + ref[q, 2] * t2
+            x0, x1, x2 = ref[q, 0] - g * t0, ref[q, 1] - g * t1, ref[q, 2] - g * t2
+            n = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+            n = n if n > 0 else 1.0
+            x0, x1, x2 = x0 / n, x1 / n, x2 / n
+            y0 = t1 * x2 - t2 * x1                       # s = twig x r
+            y1 = t2 * x0 - t0 * x2
+            y2 = t0 * x1 - t1 * x0
+            rad_at = radii[sect[tip, q]] + loc * (radii[sect[tip, q + 1]] - radii[sect[tip, q]])
+            cp, sp = cphi[i, j], sphi[i, j]
+            o0, o1, o2 = cp * x0 + sp * y0, cp * x1 + sp * y1, cp * x2 + sp * y2       # radial direction
+            w0, w1, w2 = -sp * x0 + cp * y0, -sp * x1 + cp * y1, -sp * x2 + cp * y2    # across the blade
+            ci, si = cia[i, j], sia[i, j]
+            ax0, ax1, ax2 = ci * t0 + si * o0, ci * t1 + si * o1, ci * t2 + si * o2
+            cr, sr = cro[i, j], sro[i, j]
+            z0 = ax1 * w2 - ax2 * w1
+            z1 = ax2 * w0 - ax0 * w2
+            z2 = ax0 * w1 - ax1 * w0
+            w0, w1, w2 = cr * w0 + sr * z0, cr * w1 + sr * z1, cr * w2 + sr * z2
+            if face_up > 0:
+                h0 = ax1 * 1.0 - ax2 * 0.0               # axis x up
+                h1 = ax2 * 0.0 - ax0 * 1.0
+                h2 = ax0 * 0.0 - ax1 * 0.0
+                hn = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+                if hn > 1e-6:
+                    hd = hn if hn > 0 else 1.0
+                    h0, h1, h2 = h0 / hd, h1 / hd, h2 / hd
+                else:
+                    h0, h1, h2 = w0, w1, w2
+                sg = 0.0 + h0 * w0 + h1 * w1 + h2 * w2 + 1e-12
+                sg = 1.0 if sg > 0 else (-1.0 if sg < 0 else (0.0 if sg == 0 else sg))    # np.sign
+                h0, h1, h2 = h0 * sg, h1 * sg, h2 * sg
+                w0 = (1.0 - face_up) * w0 + face_up * h0
+                w1 = (1.0 - face_up) * w1 + face_up * h1
+                w2 = (1.0 - face_up) * w2 + face_up * h2
+                g = 0.0 + w0 * ax0 + w1 * ax1 + w2 * ax2
+                w0, w1, w2 = w0 - g * ax0, w1 - g * ax1, w2 - g * ax2
+                n = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+                n = n if n > 0 else 1.0
+                w0, w1, w2 = w0 / n, w1 / n, w2 / n
+            p0 = nodes[sect[tip, q], 0] + loc * seg[q, 0]
+            p1 = nodes[sect[tip, q], 1] + loc * seg[q, 1]
+            p2 = nodes[sect[tip, q], 2] + loc * seg[q, 2]
+            base[i, j, 0], base[i, j, 1], base[i, j, 2] = p0 + rad_at * o0, p1 + rad_at * o1, p2 + rad_at * o2
+            axis[i, j, 0], axis[i, j, 1], axis[i, j, 2] = ax0, ax1, ax2
+            twig[i, j, 0], twig[i, j, 1], twig[i, j, 2] = t0, t1, t2
+            length = length_m * scale[i, j]
+            hw = half_w_m * scale[i, j]
+            w[0, 0], w[0, 1], w[0, 2] = w0, w1, w2
+            w[1, 0] = ax1 * w2 - ax2 * w1
+            w[1, 1] = ax2 * w0 - ax0 * w2
+            w[1, 2] = ax0 * w1 - ax1 * w0
+            for e in range(ncross):
+                card = card0[i] + e * dir_step[i] + j
+                for c in range(3):
+                    b_ = base[i, j, c]
+                    tp = b_ + length * axis[i, j, c]
+                    corners[card, 0, c] = b_ - hw * w[e, c]
+                    corners[card, 1, c] = b_ + hw * w[e, c]
+                    corners[card, 2, c] = tp + hw * w[e, c]
+                    corners[card, 3, c] = tp - hw * w[e, c]
+    return base, axis, twig, corners
 
 
-def _horizontal_normal(d: np.ndarray) -> np.ndarray:
-    """Unit vectors perpendicular to ``d``: horizontal (z x d) unless ``d`` is vertical."""
-    r = np.cross(np.array([0.0, 0.0, 1.0]), d)
-    steep = np.linalg.norm(r, axis=1) < 1e-6
-    r[steep] = np.cross(np.array([0.0, 1.0, 0.0]), d[steep])
-    return _unit(r)
-
-
-def _transport(v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Rotate ``v`` by the minimal rotation taking unit ``a`` to unit ``b`` (row-wise)."""
-    c = (a * b).sum(axis=1, keepdims=True)
-    k = np.cross(a, b)
-    ok = c[:, 0] > -0.999999
-    out = v.copy()
-    kv = np.cross(k[ok], v[ok])
-    out[ok] = v[ok] * c[ok] + kv + k[ok] * ((k[ok] * v[ok]).sum(axis=1, keepdims=True) / (1.0 + c[ok]))
-    return out
 
 
 def _tip_sections(skeleton: Skeleton, tip_segments: int, branch_set=None):
     """Node indices (t, K + 1) of the last K segments of every branch (padded at the start)."""
     bset = branch_set if branch_set is not None else branches(skeleton)
-    off = bset.offsets
-    real = np.flatnonzero(np.diff(off) >= 2)
+    return _chain_tips(bset.nodes, bset.offsets, tip_segments)
+
+
+def _chain_tips(nodes: np.ndarray, offsets: np.ndarray, tip_segments: int) -> np.ndarray:
+    """The last ``tip_segments`` segments (t, K + 1) of every chain of two or more nodes of a BranchSet's arrays."""
+    real = np.flatnonzero(np.diff(offsets) >= 2)
     if len(real) == 0:
         return np.zeros((0, tip_segments + 1), dtype=np.int64)
-    ends, starts = off[real + 1], off[real]
+    ends, starts = offsets[real + 1], offsets[real]
     k = np.arange(tip_segments + 1)[None, :]
     pos = ends[:, None] - 1 - (tip_segments - k)
     pos = np.maximum(pos, starts[:, None])
-    return bset.nodes[pos]
+    return nodes[pos]
+
+
+def _forest_tip_sections(bs, branch_off: np.ndarray, tip_segments: int):
+    """:func:`_tip_sections` of every tree of a forest's BranchSet (global node indices) and the tree of each."""
+    sect = _chain_tips(bs.nodes, bs.offsets, tip_segments)
+    tree_of_branch = np.repeat(np.arange(len(branch_off) - 1), np.diff(branch_off))
+    return sect, tree_of_branch[np.diff(bs.offsets) >= 2]
 
 
 def grow_leaves(skeleton: Skeleton, method: Union[LeafCards, NeedleClusters] = LeafCards(),
@@ -256,123 +393,99 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
     if per_tip < 0 or ksegs < 1 or not (length_m > 0) or not (width_m > 0):
         raise InputError("leaves: need leaves_per_tip >= 0, tip_segments >= 1 and positive leaf sizes "
                          f"(got {per_tip}, {ksegs}, {length_m} m, {width_m} m)")
-    base_az, node_rank = phyllotaxis_azimuths(method.pattern, per_tip)
-    # tip sections of all trees; node indices made global over the concatenated skeletons
-    sects, nodes_all, rad_all = [], [], []
-    n_off = 0
-    for skeleton, r, bs in zip(skeletons, radii, branch_sets):
+    sects, tip_tree, rad_all = [], [], []
+    for t, (skeleton, r, bs) in enumerate(zip(skeletons, radii, branch_sets)):
         rad = skeleton.radius if r is None else np.asarray(r, dtype=np.float64).reshape(-1)
         if len(rad) != len(skeleton):
             raise InputError(f"leaves: {len(rad)} radii for {len(skeleton)} skeleton nodes")
         sect = (_tip_sections(skeleton, ksegs, bs) if len(skeleton)
                 else np.zeros((0, ksegs + 1), np.int64))
-        sects.append(sect + n_off)
-        nodes_all.append(skeleton.nodes)
+        sects.append(sect)
+        tip_tree.append(np.full(len(sect), t, dtype=np.int64))
         rad_all.append(rad)
-        n_off += len(skeleton)
-    nodes_all = np.concatenate(nodes_all) if ntree else np.zeros((0, 3))
-    rad_all = np.concatenate(rad_all) if ntree else np.zeros(0)
-    sect_all = np.concatenate(sects) if ntree else np.zeros((0, ksegs + 1), np.int64)
-    pts = nodes_all[sect_all]                                    # (t, K+1, 3)
-    seg = pts[:, 1:] - pts[:, :-1]
-    seglen = np.linalg.norm(seg, axis=2)                         # (t, K)
+    if ntree == 0:
+        return []
+    nodes_all, _, node_off = _forest(skeletons)
+    sect_all = np.concatenate(sects) + np.repeat(node_off[:-1], [len(x) for x in sects])[:, None]
+    return _grow_leaves(nodes_all, np.concatenate(rad_all), sect_all, np.concatenate(tip_tree), node_off[:-1],
+                        method, seeds)
+
+
+def _grow_leaves(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip_tree: np.ndarray,
+                 node_start: np.ndarray, method: Union[LeafCards, NeedleClusters], seeds) -> list:
+    """The leaves of :func:`grow_leaves_batch` from the trees' tip sections, one vectorised pass for all tips.
+
+    ``nodes`` / ``radii`` the nodes of all trees (a forest), ``sect_all`` (t, K + 1) the tip sections
+    (global node indices) of all trees in tree order, ``tip_tree`` (t,) the tree (0 .. n_trees - 1) of
+    each, ``node_start`` (n_trees,) the index of each tree's first node, ``seeds`` one per tree.
+    """
+    ntree = len(seeds)
+    needles = isinstance(method, NeedleClusters)
+    per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
+    length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
+    width_m = method.cluster_width_m if needles else method.leaf_width_m
+    shape = _shape_name(method.shape)
+    if width_m is None:
+        width_m = length_m * leaf_aspect(shape)
+    ksegs = int(method.tip_segments)
+    base_az, node_rank = phyllotaxis_azimuths(method.pattern, per_tip)
+    pts = nodes[sect_all]                                        # (t, K+1, 3)
+    seglen = _norm3(pts[:, 1:] - pts[:, :-1])                    # (t, K)
     total = seglen.sum(axis=1)
-    live = total > 1e-9
-    tip_tree = np.repeat(np.arange(ntree), [len(x) for x in sects])[live]
+    live = np.flatnonzero(total > 1e-9)
+    tip_tree = tip_tree[live]
     nt_of = np.bincount(tip_tree, minlength=ntree)
-    sect_all, pts, seg, seglen, total = sect_all[live], pts[live], seg[live], seglen[live], total[live]
-    nt = len(sect_all)
+    nt = len(live)
     n_nodes = int(node_rank.max()) + 1 if per_tip else 0
     if nt == 0 or per_tip == 0:
         return [_empty(shape, needles) for _ in range(ntree)]
-    # random draws, per tree from its own generator, always in the same order
-    draws = [[], [], [], [], []]
-    for t in np.flatnonzero(nt_of):
+    # random draws, per tree from its own generator, always in the same order: the start azimuths, then
+    # normal(0, sd) azimuth, angle and roll jitters and a standard normal size jitter per leaf, drawn as
+    # one block of standard normals (normal(0, sd) is 0 + sd * z of the same stream)
+    starts, jitter = [], []
+    for t in np.flatnonzero(nt_of).tolist():
         rng = np.random.default_rng(seeds[t])
         n_t = int(nt_of[t])
-        draws[0].append(np.zeros(n_t) if method.pattern == "distichy" else rng.uniform(0.0, 360.0, n_t))
-        draws[1].append(rng.normal(0.0, method.azimuth_jitter_deg, (n_t, per_tip)))
-        draws[2].append(rng.normal(0.0, method.angle_jitter_deg, (n_t, per_tip)))
-        draws[3].append(rng.normal(0.0, method.roll_jitter_deg, (n_t, per_tip)))
-        draws[4].append(rng.standard_normal((n_t, per_tip)))
-    start, az_jit, ins_jit, roll, size_jit = (np.concatenate(d) for d in draws)
-    # unit directions per segment; zero-length (padding) segments take the next real one
-    d = seg / np.where(seglen > 0, seglen, 1.0)[..., None]
-    for q in range(ksegs - 2, -1, -1):
-        zero = seglen[:, q] <= 0
-        d[zero, q] = d[zero, q + 1]
-    # reference normal per segment: horizontal at the first, carried by minimal rotations
-    ref = np.empty_like(d)
-    ref[:, 0] = _horizontal_normal(d[:, 0])
-    for q in range(1, ksegs):
-        ref[:, q] = _unit(_transport(ref[:, q - 1], d[:, q - 1], d[:, q]))
-    # leaf positions along the tip section
-    cum = np.concatenate([np.zeros((nt, 1)), np.cumsum(seglen, axis=1)], axis=1)   # (t, K+1)
-    frac = (node_rank + 0.5) / n_nodes                                               # (L,)
-    s = total[:, None] * frac[None, :]                                               # (t, L)
-    q = np.clip((cum[:, None, 1:-1] <= s[..., None]).sum(axis=2), 0, ksegs - 1)       # (t, L)
-    ti = np.arange(nt)[:, None]
-    local = (s - cum[ti, q]) / np.where(seglen[ti, q] > 0, seglen[ti, q], 1.0)
-    pos = pts[ti, q] + local[..., None] * seg[ti, q]
-    twig = d[ti, q]                                                                  # (t, L, 3)
-    r_ = ref[ti, q]
-    r_ = _unit(r_ - (r_ * twig).sum(axis=2, keepdims=True) * twig)
-    s_ = _cross(twig, r_)
-    # radii along the twig (linear between nodes)
-    rn = rad_all[sect_all]
-    rad_at = rn[ti, q] + local * (rn[ti, q + 1] - rn[ti, q])
-    az = start[:, None] + base_az[None, :] + az_jit
-    ins = method.insertion_angle_deg + ins_jit
-    scale = np.clip(1.0 + method.size_jitter * size_jit, 0.5, 1.5)
-    phi = np.deg2rad(az)[..., None]
-    out_dir = np.cos(phi) * r_ + np.sin(phi) * s_            # radial direction of the leaf
-    wdir = -np.sin(phi) * r_ + np.cos(phi) * s_              # across the blade
-    ia = np.deg2rad(ins)[..., None]
-    axis = np.cos(ia) * twig + np.sin(ia) * out_dir
-    ro = np.deg2rad(roll)[..., None]
-    wdir = np.cos(ro) * wdir + np.sin(ro) * _cross(axis, wdir)
-    if method.face_up > 0:
-        horiz = _cross(axis, np.array([0.0, 0.0, 1.0]))
-        hn = np.linalg.norm(horiz, axis=2, keepdims=True)
-        horiz = np.where(hn > 1e-6, horiz / np.where(hn > 0, hn, 1.0), wdir)
-        horiz *= np.sign((horiz * wdir).sum(axis=2, keepdims=True) + 1e-12)
-        wdir = (1.0 - method.face_up) * wdir + method.face_up * horiz
-        wdir = _unit(wdir - (wdir * axis).sum(axis=2, keepdims=True) * axis)
-    base = pos + rad_at[..., None] * out_dir
-    length = (length_m * scale)[..., None]
-    half_w = (0.5 * width_m * scale)[..., None]
-    # flatten leaves
+        starts.append(np.zeros(n_t) if method.pattern == "distichy" else rng.uniform(0.0, 360.0, n_t))
+        jitter.append(rng.standard_normal((4, n_t, per_tip)))
+    start, z = np.concatenate(starts), np.concatenate(jitter, axis=1)
+    az = start[:, None] + base_az[None, :] + (0.0 + method.azimuth_jitter_deg * z[0])
+    ins = method.insertion_angle_deg + (0.0 + method.angle_jitter_deg * z[1])
+    ro = np.deg2rad(0.0 + method.roll_jitter_deg * z[2])
+    scale = np.clip(1.0 + method.size_jitter * z[3], 0.5, 1.5)
+    phi, ia = np.deg2rad(az), np.deg2rad(ins)
+    # each tree's cards: those of the first direction for all its leaves, then of the second (crossed)
+    ncross = 2 if method.crossed else 1
+    t_off = np.r_[0, np.cumsum(nt_of)]
+    first_tip = t_off[:-1][tip_tree]
+    dir_step = per_tip * nt_of[tip_tree]
+    card0 = ncross * per_tip * first_tip + per_tip * (np.arange(nt) - first_tip)
+    base, axis, twig, corners = _leaf_kernel(
+        nodes, radii, sect_all, live, seglen, total, (node_rank + 0.5) / n_nodes, np.cos(phi), np.sin(phi),
+        np.cos(ia), np.sin(ia), np.cos(ro), np.sin(ro), scale, float(method.face_up), length_m, 0.5 * width_m,
+        bool(method.crossed), card0, dir_step)
     L = nt * per_tip
-    base, axis, wdir, twig = (x.reshape(L, 3) for x in (base, axis, wdir, twig))
-    length, half_w = length.reshape(L, 1), half_w.reshape(L, 1)
-    dirs = [wdir, _cross(axis, wdir)] if method.crossed else [wdir]
-    tip_pt = base + length * axis
-    corners = [np.stack([base - half_w * w, base + half_w * w,
-                         tip_pt + half_w * w, tip_pt - half_w * w], axis=1) for w in dirs]     # (L, 4, 3)
-    az = az.reshape(L)
-    tips_local = sect_all[:, -1] - np.repeat(np.r_[0, np.cumsum([len(sk) for sk in skeletons])][:-1], nt_of)
-    quad_uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    base, axis, twig, az = base.reshape(L, 3), axis.reshape(L, 3), twig.reshape(L, 3), az.reshape(L)
+    verts_all = corners.reshape(-1, 3)
+    # faces and texture coordinates number the cards of each tree from 0: one template for all
+    most = ncross * per_tip * int(nt_of.max())
+    faces_t = (4 * np.arange(most)[:, None, None] + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
+    uvs_t = np.tile(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), (most, 1))
+    tips_all = np.repeat(sect_all[live, -1] - node_start[tip_tree], per_tip)
+    rank_all = np.tile(node_rank, nt)
     material = f"sylva_{'needles' if needles else 'leaf'}_{shape}"
     out = []
-    t_off = np.r_[0, np.cumsum(nt_of)].tolist()
+    t_l = t_off.tolist()
     for t in range(ntree):
-        a, b = t_off[t], t_off[t + 1]
+        a, b = t_l[t], t_l[t + 1]
         if a == b:
             out.append(_empty(shape, needles))
             continue
         la, lb = a * per_tip, b * per_tip
-        Lt = lb - la
-        verts, uvs, faces = [], [], []
-        nv = 0
-        for c in corners:
-            verts.append(c[la:lb].reshape(-1, 3))
-            uvs.append(np.tile(quad_uv, (Lt, 1)))
-            v0 = nv + 4 * np.arange(Lt)[:, None]
-            faces.append(np.concatenate([v0 + [0, 1, 2], v0 + [0, 2, 3]], axis=1).reshape(-1, 3))
-            nv += 4 * Lt
-        out.append(LeafMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int64), np.concatenate(uvs),
-                            shape, material, np.repeat(tips_local[a:b], per_tip), base[la:lb], axis[la:lb],
-                            twig[la:lb], az[la:lb], np.tile(node_rank, b - a), {"pattern": method.pattern}))
+        n = ncross * (lb - la)
+        out.append(LeafMesh(verts_all[4 * ncross * la:4 * ncross * lb], faces_t[:2 * n].copy(), uvs_t[:4 * n].copy(),
+                            shape, material, tips_all[la:lb], base[la:lb], axis[la:lb],
+                            twig[la:lb], az[la:lb], rank_all[la:lb], {"pattern": method.pattern}))
     return out
 
 

@@ -241,3 +241,24 @@ def estimate_dbh(local_xyz: np.ndarray, height_m: np.ndarray, tree_height_m: flo
                 and 0.01 <= circle.radius <= rule.max_radius_m):
             return 2.0 * circle.radius, "measured"
     return float(allometric_dbh_m(tree_height_m, crown_diameter_m)), "allometric"
+
+
+def estimate_dbhs(local_xyz: np.ndarray, height_m: np.ndarray, offsets, tree_heights_m, crown_diameters_m,
+                  rule: DbhRule = DbhRule()) -> list:
+    """:func:`estimate_dbh` of every tree whose points are ``local_xyz[offsets[t]:offsets[t + 1]]``.
+
+    The breast-height band is counted for all trees in one pass; only trees with enough points in it
+    are fitted, the others get the allometric DBH straight away (the same values as tree by tree).
+    """
+    off = np.asarray(offsets, dtype=np.int64)
+    band = np.abs(np.asarray(height_m) - rule.breast_height_m) <= rule.band_m
+    n_band = np.diff(np.r_[0, np.cumsum(band)][off]).tolist()
+    bounds = off.tolist()
+    out = []
+    for t, (h, cd) in enumerate(zip(tree_heights_m, crown_diameters_m)):
+        if n_band[t] >= rule.min_points:
+            a, b = bounds[t], bounds[t + 1]
+            out.append(estimate_dbh(local_xyz[a:b], height_m[a:b], h, cd, rule))
+        else:
+            out.append((float(allometric_dbh_m(h, cd)), "allometric"))
+    return out

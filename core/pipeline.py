@@ -498,7 +498,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
 
 def _billboards(cloud: PointCloud, labels: np.ndarray, trees) -> list:
     """The billboard of every modelled tree, in the frame of its wood mesh (origin at its base)."""
-    from .forest import _groups
+    from .forest import tree_points
     from .reconstruct.billboard import Billboard, billboard_tree
 
     rgb = None
@@ -506,7 +506,7 @@ def _billboards(cloud: PointCloud, labels: np.ndarray, trees) -> list:
         rgb = np.column_stack([cloud.attrs[c] for c in ("red", "green", "blue")])
     local = cloud.local_xyz()
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
-    ids, groups = _groups(labels)
+    ids, groups = tree_points(labels)
     points_of = dict(zip(ids.tolist(), groups))
     out = []
     for t in trees:

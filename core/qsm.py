@@ -487,6 +487,102 @@ def measure_qsm(cyl: dict, branch_parent: Sequence[int], xyz: Optional[np.ndarra
                {int(o): int(c) for o, c in zip(orders, counts)})
 
 
+def skeleton_qsms(nodes: np.ndarray, parent: np.ndarray, radius: np.ndarray, branch_set, node_off: np.ndarray,
+                  branch_off: np.ndarray, tree_ids, base_z, top_z, dbh_m, dbh_source) -> list:
+    """The QSM of every tree of a forest of skeletons with radii, all trees in one vectorised pass.
+
+    The forest is the trees' skeletons joined (``nodes``, ``parent`` with global indices, ``radius``;
+    tree ``t`` owns nodes ``node_off[t]:node_off[t + 1]``), ``branch_set`` its
+    :func:`~sylva.core.geometry.branches` (tree ``t`` owns chains ``branch_off[t]:branch_off[t + 1]``).
+    Tree ``t`` gets ``measure_qsm(*cylinders_from_skeleton(skeleton, branch_set=bs), xyz,
+    base_z=base_z[t], tree_id=tree_ids[t])`` with ``top_z[t]`` the highest of its points ``xyz``,
+    except that its DBH is ``dbh_m[t]`` / ``dbh_source[t]`` (the caller's measurement, so no circle
+    is fitted here).  Per-tree sums are numpy sums over each tree's slice, so every value is the
+    one of the per-tree functions, bit for bit (Sylva, not in the paper).
+    """
+    from .geometry import _norm3
+
+    bs = branch_set
+    node_off = np.asarray(node_off, dtype=np.int64)
+    nt = len(node_off) - 1
+    sizes = np.diff(node_off)
+    tree_of_node = np.repeat(np.arange(nt), sizes)
+    # one cylinder per non-root node, grouped by branch, by node within a branch: the chains without
+    # their first entry (the attachment node, or the root for a trunk)
+    own = np.ones(len(bs.nodes), dtype=bool)
+    own[bs.offsets[:-1][np.diff(bs.offsets) > 0]] = False
+    node = bs.nodes[own]
+    par = parent[node]
+    ctree = tree_of_node[node]
+    c_off = np.r_[0, np.cumsum(np.bincount(ctree, minlength=nt))]
+    cyl_of = np.full(len(parent), -1, dtype=np.int64)
+    cyl_of[node] = np.arange(len(node))
+    pcyl = cyl_of[par]
+    start = nodes[par]
+    vec = nodes[node] - start
+    length = _norm3(vec)
+    axis = np.where(length[:, None] > 1e-12, vec / np.maximum(length, 1e-12)[:, None], np.array([0, 0, 1.0]))
+    branch = bs.node_branch[node]
+    rad = radius[node]
+    local_id = np.arange(len(node)) - c_off[:-1][ctree]
+    local_parent = np.where(pcyl >= 0, pcyl - c_off[:-1][ctree], -1)
+    local_branch = branch - branch_off[:-1][ctree]
+    cyl_order = bs.order[branch]
+    # branch table (branch_table_arrays): bincounts over the forest's chains
+    nbr = len(bs)
+    ncyl = np.bincount(branch, minlength=nbr)
+    vol = np.pi * rad ** 2 * length
+    b_len = np.bincount(branch, weights=length, minlength=nbr)
+    b_vol = np.bincount(branch, weights=vol, minlength=nbr)
+    has = ncyl > 0
+    first = np.r_[0, np.cumsum(ncyl)][:-1]
+    base_d = np.zeros(nbr)
+    base_d[has] = 2 * rad[first[has]]
+    base_h = np.full(nbr, np.nan)
+    base_h[has] = start[first[has], 2]
+    angle = np.zeros(nbr)
+    b = np.flatnonzero(has)
+    p = pcyl[first[b]]
+    b, fc, p = b[p >= 0], first[b][p >= 0], p[p >= 0]
+    if len(b):
+        c = np.matmul(axis[fc][:, None, :], axis[p][:, :, None])[:, 0, 0]
+        angle[b] = np.degrees(np.arccos(np.clip(c, -1, 1)))
+    tree_of_branch = np.repeat(np.arange(nt), np.diff(branch_off))
+    b_id = np.arange(nbr) - branch_off[:-1][tree_of_branch]
+    b_parent = np.where(bs.parent >= 0, bs.parent - branch_off[:-1][tree_of_branch], -1)
+    counted = bs.order >= 1
+    n_orders = int(bs.order.max()) + 1 if nbr else 1
+    by_order = np.bincount(tree_of_branch[counted] * n_orders + bs.order[counted],
+                           minlength=nt * n_orders).reshape(nt, n_orders)
+    n_stem = np.bincount(ctree[local_branch == 0], minlength=nt)
+    end_z = start[:, 2] + axis[:, 2] * length
+    co, bo = c_off.tolist(), np.asarray(branch_off).tolist()
+    ns, sz = n_stem.tolist(), sizes.tolist()
+    empty = cylinders_from_curves([], [], [])
+    out = []
+    for t in range(nt):
+        c0, c1, b0, b1 = co[t], co[t + 1], bo[t], bo[t + 1]
+        tops = [float(top_z[t])]
+        if c1 > c0:
+            tops = [float(end_z[c0:c1].max()), float(start[c0:c1, 2].max())] + tops
+            cyl = dict(id=local_id[c0:c1], parent=local_parent[c0:c1], branch=local_branch[c0:c1],
+                       order=cyl_order[c0:c1], start=start[c0:c1], axis=axis[c0:c1], length=length[c0:c1],
+                       radius=rad[c0:c1])
+            trunk, total = float(vol[c0:c0 + ns[t]].sum()), float(vol[c0:c1].sum())
+        else:
+            cyl, trunk, total = dict(empty), 0.0, 0.0
+        if sz[t] >= 2:
+            br = dict(id=b_id[b0:b1], parent=b_parent[b0:b1], order=bs.order[b0:b1], n_cylinders=ncyl[b0:b1],
+                      length=b_len[b0:b1], base_diameter=base_d[b0:b1], volume=b_vol[b0:b1],
+                      angle_deg=angle[b0:b1], base_height=base_h[b0:b1])
+            counts = {o: int(k) for o, k in enumerate(by_order[t].tolist()) if k}
+        else:           # a lone root: no cylinder, no branch (cylinders_from_skeleton's empty table)
+            br, counts = branch_table_arrays(cyl, np.zeros(0, dtype=np.int64)), {}
+        out.append(QSM(int(tree_ids[t]), cyl, br, float(dbh_m[t]), dbh_source[t], float(max(tops) - base_z[t]),
+                       float(base_z[t]), trunk, total, counts))
+    return out
+
+
 # --------------------------------------------------------------------------- tables
 
 def _cyl_columns(q: QSM) -> dict:
