@@ -1,8 +1,11 @@
-"""The compiled kernels of the greedy skeleton (Hu et al. 2017, §5.1 thinning, §5.2 graph,
-§5.4 Algorithm 2) against straightforward references: the numpy/heapq/cKDTree
+"""The compiled kernels of the greedy skeleton (Hu et al. 2017, §4.2 trunk points, §5.1
+voxels and thinning, §5.2 graph, §5.3 direction field, §5.4 Algorithm 2, the screening of
+degenerate trees) against straightforward references: the numpy/heapq/cKDTree
 implementations they replaced, kept here verbatim except that the greedy
 reference writes its dot products out as (x·x' + y·y') + z·z' (the kernel's
-arithmetic; a BLAS gemv may round differently on another CPU)."""
+arithmetic; a BLAS gemv may round differently on another CPU).  The kernels that
+sum coordinates (trunk points) do it in point order, as numpy reduces an (n, 3)
+array along axis 0; the comparisons are bit for bit on this machine."""
 from __future__ import annotations
 
 import heapq
@@ -16,9 +19,15 @@ from scipy.spatial import cKDTree
 from sylva.core import jit
 from sylva.core.errors import InputError
 from sylva.core.reconstruct import GreedySkeleton, TreePoints, reconstruct_tree
+from sylva.core.reconstruct import direction as direction_mod
+from sylva.core.reconstruct import graph as graph_mod
+from sylva.core.reconstruct import model as model_mod
 from sylva.core.reconstruct import skeleton as skel_mod
-from sylva.core.reconstruct.direction import direction_field
-from sylva.core.reconstruct.graph import build_graph
+from sylva.core.reconstruct import thinning as thinning_mod
+from sylva.core.reconstruct import trunk as trunk_mod
+from sylva.core.reconstruct.direction import direction_angles, direction_field
+from sylva.core.reconstruct.graph import build_graph, graph_arrays
+from sylva.core.reconstruct.model import degenerate_flags
 from sylva.core.reconstruct.skeleton import choose_end, greedy_skeleton
 from sylva.core.reconstruct.thinning import _DIRECTIONS, _OFFSETS, is_simple, thin_voxels
 from sylva.core.reconstruct.trunk import add_trunk_points
@@ -187,6 +196,135 @@ def voxel_neighbours(xyz, voxel_m):
     nkey = ukey[:, None] + ((_OFFSETS[:, 0] * dims[1] + _OFFSETS[:, 1]) * dims[2] + _OFFSETS[:, 2])[None, :]
     pos = np.minimum(np.searchsorted(ukey, nkey), len(ukey) - 1)
     return np.where(ukey[pos] == nkey, pos, len(ukey)), inv
+
+
+def reference_voxels(xyz, voxel_m, keep):
+    """The numpy voxelisation of the previous thin_voxels: (inverse, means, protected, neighbour table)."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    origin = xyz.min(axis=0)
+    ijk = np.floor((xyz - origin) / voxel_m).astype(np.int64) + 1   # +1: room for -1 offsets
+    dims = ijk.max(axis=0) + 2
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    ukey, inv = np.unique(key, return_inverse=True)
+    v = len(ukey)
+    counts = np.bincount(inv, minlength=v).astype(np.float64)
+    means = np.stack([np.bincount(inv, weights=xyz[:, c], minlength=v) for c in range(3)], axis=1)
+    means /= counts[:, None]
+    vkeep = np.zeros(v, dtype=bool)
+    if keep is not None:
+        vkeep[inv[np.asarray(keep, dtype=bool)]] = True
+    nkey = ukey[:, None] + ((_OFFSETS[:, 0] * dims[1] + _OFFSETS[:, 1]) * dims[2] + _OFFSETS[:, 2])[None, :]
+    cells = int(np.prod(dims))
+    if cells <= 16_000_000:
+        grid = np.full(cells, v, dtype=np.int32)
+        grid[ukey] = np.arange(v, dtype=np.int32)
+        nbr = grid[nkey].astype(np.int64)                               # (v, 26), v = white
+    else:
+        pos = np.minimum(np.searchsorted(ukey, nkey), v - 1)
+        nbr = np.where(ukey[pos] == nkey, pos, v)
+    return inv, means, vkeep, nbr
+
+
+def _reference_interpolate(start, stop, spacing_m):
+    length = float(np.linalg.norm(stop - start))
+    if length < 1e-12:
+        return start[None, :].copy()
+    n = max(1, int(np.ceil(length / spacing_m)))
+    t = np.linspace(0.0, 1.0, n + 1)[:, None]
+    return start[None, :] + t * (stop - start)[None, :]
+
+
+def reference_trunk(xyz, ground_z, radius_m=1.0, spacing_m=0.1, lambda1_max_deg=30.0, lambda2_max=0.5):
+    """The previous add_trunk_points (numpy reductions, np.linspace), as a tuple of its fields."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    v_b = (lo + hi) / 2.0
+    g_b = np.array([v_b[0], v_b[1], ground_z])
+    v_c = xyz.mean(axis=0)
+    low = int(np.argmin(xyz[:, 2]))
+    v_low = xyz[low]
+    h = max(0.0, float(v_low[2] - ground_z))
+    half_diag = float(np.linalg.norm(hi[:2] - g_b[:2]))
+    lambda2 = float(np.linalg.norm(v_low[:2] - g_b[:2]) / half_diag) if half_diag > 0 else 0.0
+    lambda1 = float("nan")
+    n_avg = None
+    d = xyz - v_low
+    norms = np.linalg.norm(d, axis=1)
+    near = (norms <= radius_m) & (norms > 1e-9)
+    d = d[near] / norms[near, None]
+    if len(d):
+        mean = d.mean(axis=0)
+        if np.linalg.norm(mean) > 1e-9:
+            n_avg = mean / np.linalg.norm(mean)
+            centre_line = v_b - g_b
+            if np.linalg.norm(centre_line) > 1e-9:
+                cl = centre_line / np.linalg.norm(centre_line)
+            else:
+                cl = np.array([0.0, 0.0, 1.0])
+            lambda1 = float(np.degrees(np.arccos(np.clip(n_avg @ cl, -1.0, 1.0))))
+    if n_avg is not None and lambda1 <= lambda1_max_deg and lambda2 <= lambda2_max and n_avg[2] > 0:
+        root = v_low - n_avg * (h / n_avg[2])
+        root[2] = ground_z
+        root_off = float(np.linalg.norm(root[:2] - g_b[:2]) / half_diag) if half_diag > 0 else 0.0
+        if root_off <= lambda2_max:
+            pts = _reference_interpolate(root, v_low, spacing_m)
+            return (pts, root, n_avg, "eq3", lambda1, lambda2, v_low.copy())
+    axis = v_c - g_b
+    if np.linalg.norm(axis) < 1e-9 or axis[2] <= 0:
+        axis = np.array([0.0, 0.0, 1.0])
+        top = g_b + axis * max(float(hi[2] - ground_z), 0.0)
+    else:
+        top = v_c
+        axis = axis / np.linalg.norm(axis)
+    pts = _reference_interpolate(g_b, top, spacing_m)
+    return (pts, g_b, axis, "eq4", lambda1, lambda2, v_low.copy())
+
+
+def reference_degenerate_flags(xyz, min_points):
+    """The previous degenerate_flags (lexsort, covariance eigenvalues)."""
+    if len(xyz) < min_points:
+        return ["too_few_points"]
+    srt = xyz[np.lexsort(xyz.T)]
+    distinct = 1 + int(np.count_nonzero(np.any(srt[1:] != srt[:-1], axis=1)))
+    if distinct < min_points:
+        return ["duplicate_points"]
+    spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0.0, None))[::-1]
+    if spread[1] < 0.01:
+        return ["collinear_points"]
+    if spread[2] < 0.01:
+        return ["coplanar_points"]
+    return []
+
+
+def _reference_frame(points, centre_xy, z_range, radius_m):
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre_xy = (lo[:2] + hi[:2]) / 2.0 if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
+    z0, z1 = (lo[2], hi[2]) if z_range is None else (float(z_range[0]), float(z_range[1]))
+    radial = points[:, :2] - centre_xy[None, :]
+    dist = np.hypot(radial[:, 0], radial[:, 1])
+    if radius_m is None:
+        radius_m = float(dist.max()) if len(dist) else 0.0
+    return centre_xy, z0, z1, radial, dist, radius_m
+
+
+def reference_direction_field(points, theta_upper_deg=80.0, theta_lower_deg=-40.0, k1=1.4, k2=1.0,
+                              centre_xy=None, z_range=None, radius_m=None):
+    """The previous direction_angles + direction_field (Eq. 5), one after the other."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    _, z0, z1, _, dist, lc = _reference_frame(points, centre_xy, z_range, radius_m)
+    height = z1 - z0
+    mu1 = np.clip((points[:, 2] - z0) / height, 0.0, 1.0) ** k1 if height > 0 else np.zeros(len(points))
+    mu2 = np.clip(dist / lc, 0.0, 1.0) ** k2 if lc > 0 else np.zeros(len(points))
+    angles = 90.0 - (90.0 - theta_lower_deg - mu1 * (theta_upper_deg - theta_lower_deg)) * mu2
+    theta = np.radians(angles)
+    _, _, _, radial, dist, _ = _reference_frame(points, centre_xy, z_range, radius_m)
+    out = np.zeros((len(points), 3))
+    on_line = dist < 1e-9
+    outward = np.zeros_like(radial)
+    outward[~on_line] = radial[~on_line] / dist[~on_line, None]
+    out[:, :2] = np.cos(theta)[:, None] * outward
+    out[:, 2] = np.where(on_line, 1.0, np.sin(theta))
+    return angles, out
 
 
 # --- test trees ---------------------------------------------------------------------------
@@ -377,6 +515,163 @@ def test_thinning_kernel_equals_reference(trees):
     assert len(survivors) < len(nbr) / 2
 
 
+def assert_bit_equal(got, want):
+    got, want = np.asarray(got), np.asarray(want)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert got.tobytes() == want.tobytes()
+
+
+def test_voxel_kernel_equals_numpy_voxels(trees):
+    rng = np.random.default_rng(6)
+    clouds = [(st["all_xyz"], st["keep"], 0.2) for name, xyz, gz, st in trees]
+    clouds += [(trees[0][3]["all_xyz"], trees[0][3]["keep"], 0.15),
+               (rng.random((3000, 3)) * [2.0, 1.5, 3.0], None, 0.2),           # a solid
+               (rng.random((400, 3)) * [2000.0, 1500.0, 30.0], None, 0.2),     # > 16 M cells: searchsorted
+               (np.repeat(rng.random((5, 3)), 4, axis=0), None, 0.2),          # repeated points
+               (rng.random((1, 3)), None, 0.1)]
+    for xyz, keep, voxel_m in clouds:
+        th = thin_voxels(xyz, voxel_m, keep=keep)
+        inv, means, vkeep, nbr = reference_voxels(xyz, voxel_m, keep)
+        assert_bit_equal(th.voxel_of_point, inv)
+        assert_bit_equal(th.voxel_means, means)
+        assert_bit_equal(th.voxel_keep, vkeep)
+        flags = np.zeros(len(xyz), bool) if keep is None else keep
+        got = thinning_mod._voxel_grid(np.ascontiguousarray(xyz), float(voxel_m), flags, thinning_mod._COLUMNS)
+        assert_bit_equal(got[3], nbr)
+
+
+def assert_same_trunk(trunk, ref):
+    for got, want in zip(trunk, ref):
+        if isinstance(want, np.ndarray):
+            assert_bit_equal(got, want)
+        elif isinstance(want, float) and np.isnan(want):
+            assert np.isnan(got)
+        else:
+            assert got == want and type(got) is type(want)
+
+
+def test_trunk_kernel_equals_numpy_trunk(trees):
+    rng = np.random.default_rng(7)
+    cases = [(xyz, gz) for name, xyz, gz, st in trees]
+    stem = np.c_[np.full(12, 0.05), np.zeros(12), np.linspace(0.8, 4.5, 12)]
+    cases += [(np.r_[rng.random((300, 3)) * [4, 4, 6] + [0, 0, 5], stem], 0.0),          # Eq. 3
+              (np.asfortranarray(np.r_[rng.random((50, 3)) + [0, 0, 3], [[0.5, 0.5, 2.0], [0.7, 0.5, 2.0]]]), 0.0),
+              (rng.random((5, 3)) * 10, 0.0),                                          # no neighbour within r
+              (np.ones((4, 3)), 1.0)]                                                  # no height at all
+    rules = set()
+    for xyz, gz in cases:
+        for kw in [{}, dict(radius_m=0.3, spacing_m=0.07), dict(radius_m=3.0, lambda1_max_deg=60.0, lambda2_max=1.0)]:
+            trunk = add_trunk_points(xyz, gz, **kw)
+            assert_same_trunk(trunk, reference_trunk(xyz, gz, **kw))
+            rules.add(trunk.rule)
+    assert rules == {"eq3", "eq4"}
+
+
+def test_screen_kernel_equals_numpy_screening(trees):
+    rng = np.random.default_rng(8)
+    line = np.c_[np.zeros(30), np.zeros(30), np.linspace(0, 5, 30)] + rng.normal(0, 0.002, (30, 3))
+    plane = np.c_[rng.random(40), rng.random(40), np.zeros(40)] + rng.normal(0, 0.002, (40, 3))
+    slab = np.c_[rng.random(40), rng.random(40), np.zeros(40)] + rng.normal(0, 0.012, (40, 3))
+    cases = [xyz for name, xyz, gz, st in trees]
+    cases += [line, plane, slab, np.repeat(rng.random((4, 3)), 10, axis=0), np.array([[0.0, 0, 0], [-0.0, 0, 0]] * 6),
+              rng.random((9, 3)), rng.random((30, 3)) * 1e-3]
+    assert model_mod._screen_kernel(slab, 10)[1] < model_mod._SPREAD_SURE      # the eigenvalues decide, not the bound
+    seen = set()
+    for xyz in cases:
+        for min_points in (1, 3, 10, 25):
+            flags = degenerate_flags(xyz, min_points)
+            assert flags == reference_degenerate_flags(xyz, min_points)
+            seen.update(flags)
+    assert seen == {"too_few_points", "duplicate_points", "collinear_points", "coplanar_points"}
+    assert degenerate_flags(slab, 10) == []
+
+
+def test_direction_field_equals_numpy_formulation(trees):
+    rng = np.random.default_rng(9)
+    clouds = [st["cand"] for name, xyz, gz, st in trees]
+    clouds += [np.r_[np.zeros((1, 3)), rng.random((20, 3)) * 2 - 1], np.zeros((4, 3))]   # points on the centre line
+    for pts in clouds:
+        for kw in [{}, dict(k1=2.0, k2=0.5), dict(k2=2.0),
+                   dict(centre_xy=np.array([0.1, 0.2]), z_range=(0.0, 5.0), radius_m=3.0)]:
+            angles, field = reference_direction_field(pts, **kw)
+            assert_bit_equal(direction_angles(pts, **kw), angles)
+            assert_bit_equal(direction_field(pts, **kw), field)
+
+
+def test_graph_arrays_are_the_arrays_of_build_graph(trees):
+    for name, xyz, gz, st in trees[:4]:
+        g, a = build_graph(st["cand"]), graph_arrays(st["cand"])
+        np.testing.assert_array_equal(a.adjacency.indptr, g.adjacency.indptr)
+        np.testing.assert_array_equal(a.adjacency.indices, g.adjacency.indices)
+        assert_bit_equal(a.adjacency.data, g.adjacency.data)
+        assert a.adjacency.shape == g.adjacency.shape and a.n_edges == g.n_edges
+        assert (a.n_components, a.n_knn) == (g.n_components, g.n_knn)
+        assert_bit_equal(a.labels, g.labels)
+        assert g.adjacency.indices.dtype == np.int32 and a.adjacency.indices.dtype == np.int64
+        args = (st["cand"], st["u"], 0, st["end"])
+        assert_same_greedy(greedy_skeleton(args[0], a.adjacency, *args[1:]),
+                           reference_greedy(args[0], g.adjacency, *args[1:]))
+
+
+def test_graph_kernel_dense_clouds_and_equal_distances():
+    rng = np.random.default_rng(10)
+    dense = rng.random((300, 3))        # most pairs within r_p: more FRNN rows than foreseen (32 per point)
+    g = assert_same_graph(dense, 1.2, 30)
+    assert g.adjacency.nnz > 32 * 300
+    twins = np.r_[np.zeros((25, 3)), np.full((25, 3), 3.0), rng.random((40, 3)) * 6]
+    for radius, k in [(0.5, 10), (0.5, 30), (2.0, 45)]:
+        assert_same_graph(twins, radius, k)
+    # no radius, kNN among copies (all distances 0, one histogram bin); as before, kNN
+    # neighbours within r_p² (here 1) count as FRNN ones, and there are none
+    g = build_graph(np.zeros((12, 3)), -1.0, 5)
+    assert g.n_knn == 12 and g.n_edges == 0
+    g = build_graph(np.r_[np.zeros((12, 3)), np.full((3, 3), 2.0)], -1.0, 13)
+    assert g.n_knn == 15 and g.n_edges > 0 and (g.adjacency.data == np.sqrt(12.0)).all()
+
+
+def test_new_kernels_compiled_equal_their_python_source(trees):
+    def search_args(st):
+        cand = np.ascontiguousarray(st["cand"])
+        return (cand, 1.2, 30, 1.0, float(8 * len(cand) + (1 << 17)), 32, 32 * len(cand))
+
+    # the smallest tree with kNN ties (the k-d tree's rows reach the CSR kernel)
+    name, xyz, gz, st = min((t for t in trees if graph_mod._graph_frnn_knn(*search_args(t[3]))[5].any()),
+                            key=lambda t: len(t[3]["cand"]))
+    search = search_args(st)
+    cand = search[0]
+    compiled = graph_mod._graph_frnn_knn(*search)
+    python = graph_mod._graph_frnn_knn.py_func(*search)
+    assert compiled[0] and python[0] and compiled[6] == python[6]
+    for (ptr_c, rows_c), (ptr_p, rows_p) in [((compiled[1], compiled[2]), (python[1], python[2])),
+                                             ((compiled[3], compiled[4]), (python[3], python[4]))]:
+        assert_bit_equal(ptr_c, ptr_p)
+        assert_bit_equal(rows_c[:ptr_c[-1]], rows_p[:ptr_p[-1]])     # the rest is scratch
+    assert_bit_equal(compiled[5], python[5])
+    tie_i = np.flatnonzero(compiled[5])
+    assert len(tie_i)
+    nn = np.asarray(cKDTree(cand).query(cand[tie_i], k=31)[1], dtype=np.int64).reshape(len(tie_i), -1)
+    args = (cand, *compiled[1:5], tie_i, nn, 1.2)
+    (ptr_c, ind_c, m_c, len_c, lab_c, nc_c) = graph_mod._graph_csr(*args)
+    (ptr_p, ind_p, m_p, len_p, lab_p, nc_p) = graph_mod._graph_csr.py_func(*args)
+    assert m_c == m_p and nc_c == nc_p
+    for c, p in [(ptr_c, ptr_p), (ind_c[:m_c], ind_p[:m_p]), (len_c[:m_c], len_p[:m_p]), (lab_c, lab_p)]:
+        assert_bit_equal(c, p)
+    vox = (np.ascontiguousarray(st["all_xyz"]), 0.2, st["keep"], thinning_mod._COLUMNS)
+    vc, vp = thinning_mod._voxel_grid(*vox), thinning_mod._voxel_grid.py_func(*vox)
+    for c, p in zip(vc, vp):
+        assert_bit_equal(c, p)
+    thin = (vc[3], vc[2], thinning_mod._DIRECTIONS_ARR, thinning_mod._ADJ26_MASK, thinning_mod._ADJ6_MASK,
+            thinning_mod._N18_MASK, thinning_mod._FACE_MASK, 100)
+    tc, tp = thinning_mod._thin_kernel(*thin), thinning_mod._thin_kernel.py_func(*thin)
+    assert_bit_equal(tc[0], tp[0])
+    assert tc[1] == tp[1]
+    for kernel, args in [(trunk_mod._trunk_stats, (np.ascontiguousarray(xyz), 1.0)),
+                         (model_mod._screen_kernel, (np.ascontiguousarray(xyz), 10)),
+                         (direction_mod._bounds, (cand,))]:
+        for c, p in zip(kernel(*args), kernel.py_func(*args)):
+            assert_bit_equal(c, p)
+
+
 # --- the whole method and the jit module ----------------------------------------------------
 
 def test_reconstruction_uses_the_same_stages(trees):
@@ -392,7 +687,8 @@ def test_reconstruction_uses_the_same_stages(trees):
 def test_load_kernels_compiles_every_kernel():
     from sylva.core.reconstruct import graph, thinning
     assert skel_mod.load_kernels() >= 0.0
-    kernels = (skel_mod._greedy_kernel, graph._graph_frnn_knn, graph._graph_csr, thinning._thin_kernel)
+    kernels = (skel_mod._greedy_kernel, graph._graph_frnn_knn, graph._graph_csr, thinning._thin_kernel,
+               thinning._voxel_grid, trunk_mod._trunk_stats, model_mod._screen_kernel, direction_mod._bounds)
     assert all(k.compiled is not None for k in kernels)
 
 

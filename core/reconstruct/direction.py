@@ -30,9 +30,23 @@ from typing import Optional
 
 import numpy as np
 
+from ..jit import njit
+
+
+@njit
+def _bounds(points):
+    """Per-axis minimum and maximum of (n, 3) points, n >= 1 (numpy's ``min(axis=0)`` is slow on 3 columns)."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for a in range(3):
+            lo[a] = min(lo[a], points[i, a])
+            hi[a] = max(hi[a], points[i, a])
+    return lo, hi
+
 
 def _frame(points, centre_xy, z_range, radius_m):
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = _bounds(points)
     centre_xy = (lo[:2] + hi[:2]) / 2.0 if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
     z0, z1 = (lo[2], hi[2]) if z_range is None else (float(z_range[0]), float(z_range[1]))
     radial = points[:, :2] - centre_xy[None, :]
@@ -40,6 +54,14 @@ def _frame(points, centre_xy, z_range, radius_m):
     if radius_m is None:
         radius_m = float(dist.max()) if len(dist) else 0.0
     return centre_xy, z0, z1, radial, dist, radius_m
+
+
+def _angles(points, frame, theta_upper_deg, theta_lower_deg, k1, k2):
+    _, z0, z1, _, dist, lc = frame
+    height = z1 - z0
+    mu1 = np.clip((points[:, 2] - z0) / height, 0.0, 1.0) ** k1 if height > 0 else np.zeros(len(points))
+    mu2 = np.clip(dist / lc, 0.0, 1.0) ** k2 if lc > 0 else np.zeros(len(points))
+    return 90.0 - (90.0 - theta_lower_deg - mu1 * (theta_upper_deg - theta_lower_deg)) * mu2
 
 
 def direction_angles(points: np.ndarray, theta_upper_deg: float = 80.0, theta_lower_deg: float = -40.0,
@@ -54,11 +76,7 @@ def direction_angles(points: np.ndarray, theta_upper_deg: float = 80.0, theta_lo
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros(0)
-    _, z0, z1, _, dist, lc = _frame(points, centre_xy, z_range, radius_m)
-    height = z1 - z0
-    mu1 = np.clip((points[:, 2] - z0) / height, 0.0, 1.0) ** k1 if height > 0 else np.zeros(len(points))
-    mu2 = np.clip(dist / lc, 0.0, 1.0) ** k2 if lc > 0 else np.zeros(len(points))
-    return 90.0 - (90.0 - theta_lower_deg - mu1 * (theta_upper_deg - theta_lower_deg)) * mu2
+    return _angles(points, _frame(points, centre_xy, z_range, radius_m), theta_upper_deg, theta_lower_deg, k1, k2)
 
 
 def direction_field(points: np.ndarray, theta_upper_deg: float = 80.0, theta_lower_deg: float = -40.0,
@@ -73,13 +91,17 @@ def direction_field(points: np.ndarray, theta_upper_deg: float = 80.0, theta_low
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros((0, 3))
-    theta = np.radians(direction_angles(points, theta_upper_deg, theta_lower_deg, k1, k2,
-                                        centre_xy, z_range, radius_m))
-    _, _, _, radial, dist, _ = _frame(points, centre_xy, z_range, radius_m)
-    out = np.zeros((len(points), 3))
+    frame = _frame(points, centre_xy, z_range, radius_m)
+    theta = np.radians(_angles(points, frame, theta_upper_deg, theta_lower_deg, k1, k2))
+    radial, dist = frame[3], frame[4]
+    out = np.empty((len(points), 3))
     on_line = dist < 1e-9
-    outward = np.zeros_like(radial)
-    outward[~on_line] = radial[~on_line] / dist[~on_line, None]
+    if on_line.any():
+        outward = np.zeros_like(radial)
+        outward[~on_line] = radial[~on_line] / dist[~on_line, None]
+        out[:, 2] = np.where(on_line, 1.0, np.sin(theta))
+    else:
+        outward = radial / dist[:, None]
+        out[:, 2] = np.sin(theta)
     out[:, :2] = np.cos(theta)[:, None] * outward
-    out[:, 2] = np.where(on_line, 1.0, np.sin(theta))
     return out

@@ -21,6 +21,7 @@ from typing import List, Optional
 import numpy as np
 
 from ..errors import EmptyInputError, InputError
+from ..jit import njit
 
 
 @dataclass
@@ -262,15 +263,70 @@ def minimal_skeleton(xyz: np.ndarray, ground_z: float) -> Skeleton:
     return Skeleton(np.array([root]), np.array([-1]), is_added=np.array([True]))
 
 
+@njit
+def _screen_kernel(xyz, min_points):
+    """Distinct points (counted up to ``min_points``) and a lower bound of the
+    smallest eigenvalue of the points' covariance: λ3 ≥ 4·det(C)/tr(C)²
+    (λ1·λ2 ≤ (tr/2)²); plain loops for numba."""
+    n = xyz.shape[0]
+    first = np.empty(min_points, np.int64)      # one point of each distinct position found
+    distinct = 0
+    for p in range(n):
+        if distinct >= min_points:
+            break
+        new = True
+        for q in range(distinct):
+            o = first[q]
+            if xyz[p, 0] == xyz[o, 0] and xyz[p, 1] == xyz[o, 1] and xyz[p, 2] == xyz[o, 2]:
+                new = False
+                break
+        if new:
+            first[distinct] = p
+            distinct += 1
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for p in range(n):
+        mx += xyz[p, 0]
+        my += xyz[p, 1]
+        mz += xyz[p, 2]
+    mx /= n
+    my /= n
+    mz /= n
+    sxx = sxy = sxz = syy = syz = szz = 0.0
+    for p in range(n):
+        dx = xyz[p, 0] - mx
+        dy = xyz[p, 1] - my
+        dz = xyz[p, 2] - mz
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    det = sxx * (syy * szz - syz * syz) - sxy * (sxy * szz - syz * sxz) + sxz * (sxy * syz - syy * sxz)
+    tr = sxx + syy + szz
+    bound = 4.0 * det / (tr * tr) / (n - 1) if tr > 0 and n > 1 else 0.0
+    return distinct, bound
+
+
+#: λ3 lower bounds above this (twice the 1 cm spread², a margin for rounding) settle
+#: "neither collinear nor coplanar" without the eigen decomposition.
+_SPREAD_SURE = 2.0 * 0.01 ** 2
+
+
 def degenerate_flags(xyz: np.ndarray, min_points: int) -> List[str]:
     """Why a tree cannot be modelled (empty list: it can): too few points, too few distinct
     points, or all points within ~1 cm of a line or of a plane (spread along the principal axes)."""
     if len(xyz) < min_points:
         return ["too_few_points"]
-    srt = xyz[np.lexsort(xyz.T)]
-    distinct = 1 + int(np.count_nonzero(np.any(srt[1:] != srt[:-1], axis=1)))
+    # (no points: one "distinct" point, as counting the changes along a sort gives)
+    distinct, bound = (_screen_kernel(np.ascontiguousarray(xyz, dtype=np.float64), max(int(min_points), 1))
+                       if len(xyz) else (1, 0.0))
     if distinct < min_points:
         return ["duplicate_points"]
+    if bound > _SPREAD_SURE:            # Sylva, not in the paper: the spreads are surely > 1 cm
+        return []
     spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0.0, None))[::-1]
     if spread[1] < 0.01:
         return ["collinear_points"]

@@ -32,7 +32,10 @@ The loop is inherently sequential (each expansion depends on what earlier
 ones visited), so it runs as a compiled kernel (:mod:`sylva.core.jit`,
 numba) over the CSR arrays: a binary heap for Q, the pruning walk of
 Fig. 14b as a double loop.  tests/test_skeleton_kernel.py checks it against
-the straightforward numpy/heapq implementation it replaced.
+the straightforward numpy/heapq implementation it replaced.  The other
+steps are kernels too (graph, voxels and thinning, trunk statistics,
+screening); the method hands the graph's CSR arrays to the loop without
+building a scipy matrix.
 """
 from __future__ import annotations
 
@@ -47,7 +50,7 @@ from ..errors import InputError
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
 from .direction import direction_field
-from .graph import build_graph
+from .graph import graph_arrays
 from .model import Reconstruction, Skeleton, TreePoints, screen
 from .thinning import thin_voxels
 from .trunk import add_trunk_points
@@ -71,55 +74,6 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
     (x·x' + y·y') + z·z' everywhere, so the results do not depend on a BLAS.
     """
     n = points.shape[0]
-    nnz = indices.shape[0]
-    # Directed edges i -> j that pass β_j < β_max, per row by decreasing length
-    # (stable), with their unit vectors: β_j does not depend on the parent segment.
-    e_j = np.empty(nnz, np.int64)
-    e_u = np.empty((nnz, 3))
-    e_len = np.empty(nnz)
-    ptr = np.zeros(n + 1, np.int64)
-    m = 0
-    for i in range(n):
-        s = m
-        for e in range(indptr[i], indptr[i + 1]):
-            j = indices[e]
-            dx = points[j, 0] - points[i, 0]
-            dy = points[j, 1] - points[i, 1]
-            dz = points[j, 2] - points[i, 2]
-            ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if not ln > 1e-12:
-                continue
-            ux = dx / ln
-            uy = dy / ln
-            uz = dz / ln
-            if ux * directions[j, 0] + uy * directions[j, 1] + uz * directions[j, 2] > cos_b:
-                e_j[m] = j
-                e_u[m, 0] = ux
-                e_u[m, 1] = uy
-                e_u[m, 2] = uz
-                e_len[m] = ln
-                m += 1
-        for t in range(s + 1, m):                   # insertion sort: stable, rows are short
-            kj = e_j[t]
-            kx = e_u[t, 0]
-            ky = e_u[t, 1]
-            kz = e_u[t, 2]
-            kl = e_len[t]
-            q = t - 1
-            while q >= s and e_len[q] < kl:
-                e_j[q + 1] = e_j[q]
-                e_u[q + 1, 0] = e_u[q, 0]
-                e_u[q + 1, 1] = e_u[q, 1]
-                e_u[q + 1, 2] = e_u[q, 2]
-                e_len[q + 1] = e_len[q]
-                q -= 1
-            e_j[q + 1] = kj
-            e_u[q + 1, 0] = kx
-            e_u[q + 1, 1] = ky
-            e_u[q + 1, 2] = kz
-            e_len[q + 1] = kl
-        ptr[i + 1] = m
-
     visited = np.zeros(n, np.bool_)
     node_of_point = np.empty(n, np.int64)
     for i in range(n):
@@ -134,11 +88,12 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
     node_cos[0] = np.nan
     node_of_point[start] = 0
     nodes = 1
-    # Q: binary heap of (key, counter, edge); key = -cos α (α ascending), the
-    # counter makes equal keys first in, first out; edge -1 is the first segment.
+    # Q: binary heap of (key, counter, point j, unit segment u to j); key = -cos α
+    # (α ascending), the counter makes equal keys first in, first out.
     h_key = np.empty(n + 1)
     h_cnt = np.empty(n + 1, np.int64)
-    h_edge = np.empty(n + 1, np.int64)
+    h_j = np.empty(n + 1, np.int64)
+    h_u = np.empty((n + 1, 3))
     hs = 0
     if end != start:
         point_of_node[1] = end
@@ -148,24 +103,33 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
         nodes = 2
         h_key[0] = 0.0
         h_cnt[0] = 0
-        h_edge[0] = -1
+        h_j[0] = end
+        h_u[0, 0] = v0[0]
+        h_u[0, 1] = v0[1]
+        h_u[0, 2] = v0[2]
         hs = 1
     counter = 1
     deg = 0
     for i in range(n):
-        deg = max(deg, ptr[i + 1] - ptr[i])
+        deg = max(deg, indptr[i + 1] - indptr[i])
+    # the row of the point expanded (each point is expanded at most once)
+    e_j = np.empty(deg, np.int64)
+    e_u = np.empty((deg, 3))
+    e_len = np.empty(deg)
     c_edge = np.empty(deg, np.int64)
     c_cos = np.empty(deg)
     c_rank = np.empty(deg)
     alive = np.empty(deg, np.bool_)
     while hs > 0:
         # pop the smallest (key, counter)
-        e0 = h_edge[0]
+        i = h_j[0]
+        vx = h_u[0, 0]
+        vy = h_u[0, 1]
+        vz = h_u[0, 2]
         hs -= 1
         if hs > 0:
             k_last = h_key[hs]
             c_last = h_cnt[hs]
-            ed_last = h_edge[hs]
             pos = 0
             while True:
                 ch = 2 * pos + 1
@@ -177,28 +141,53 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
                 if h_key[ch] < k_last or (h_key[ch] == k_last and h_cnt[ch] < c_last):
                     h_key[pos] = h_key[ch]
                     h_cnt[pos] = h_cnt[ch]
-                    h_edge[pos] = h_edge[ch]
+                    h_j[pos] = h_j[ch]
+                    h_u[pos, 0] = h_u[ch, 0]
+                    h_u[pos, 1] = h_u[ch, 1]
+                    h_u[pos, 2] = h_u[ch, 2]
                     pos = ch
                 else:
                     break
             h_key[pos] = k_last
             h_cnt[pos] = c_last
-            h_edge[pos] = ed_last
-        if e0 < 0:
-            i = end
-            vx = v0[0]
-            vy = v0[1]
-            vz = v0[2]
-        else:
-            i = e_j[e0]
-            vx = e_u[e0, 0]
-            vy = e_u[e0, 1]
-            vz = e_u[e0, 2]
-        # candidates: not visited, α_j < α_max (β_j < β_max already holds)
-        c = 0
-        for e in range(ptr[i], ptr[i + 1]):
-            if visited[e_j[e]]:
+            h_j[pos] = h_j[hs]
+            h_u[pos, 0] = h_u[hs, 0]
+            h_u[pos, 1] = h_u[hs, 1]
+            h_u[pos, 2] = h_u[hs, 2]
+        # the unvisited neighbours j of i that pass β_j < β_max, by decreasing
+        # length (stable), with their unit vectors
+        m = 0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if visited[j]:
                 continue
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            dz = points[j, 2] - points[i, 2]
+            ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not ln > 1e-12:
+                continue
+            ux = dx / ln
+            uy = dy / ln
+            uz = dz / ln
+            if ux * directions[j, 0] + uy * directions[j, 1] + uz * directions[j, 2] > cos_b:
+                q = m - 1                           # insertion sort: stable, rows are short
+                while q >= 0 and e_len[q] < ln:
+                    e_j[q + 1] = e_j[q]
+                    e_u[q + 1, 0] = e_u[q, 0]
+                    e_u[q + 1, 1] = e_u[q, 1]
+                    e_u[q + 1, 2] = e_u[q, 2]
+                    e_len[q + 1] = e_len[q]
+                    q -= 1
+                e_j[q + 1] = j
+                e_u[q + 1, 0] = ux
+                e_u[q + 1, 1] = uy
+                e_u[q + 1, 2] = uz
+                e_len[q + 1] = ln
+                m += 1
+        # candidates: α_j < α_max (β_j < β_max already holds)
+        c = 0
+        for e in range(m):
             cs = e_u[e, 0] * vx + e_u[e, 1] * vy + e_u[e, 2] * vz
             if cs > cos_a:
                 c_edge[c] = e
@@ -258,13 +247,19 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
                 if key < h_key[up] or (key == h_key[up] and counter < h_cnt[up]):
                     h_key[pos] = h_key[up]
                     h_cnt[pos] = h_cnt[up]
-                    h_edge[pos] = h_edge[up]
+                    h_j[pos] = h_j[up]
+                    h_u[pos, 0] = h_u[up, 0]
+                    h_u[pos, 1] = h_u[up, 1]
+                    h_u[pos, 2] = h_u[up, 2]
                     pos = up
                 else:
                     break
             h_key[pos] = key
             h_cnt[pos] = counter
-            h_edge[pos] = el
+            h_j[pos] = j
+            h_u[pos, 0] = e_u[el, 0]
+            h_u[pos, 1] = e_u[el, 1]
+            h_u[pos, 2] = e_u[el, 2]
             counter += 1
     return point_of_node, parent, node_cos, nodes, visited
 
@@ -275,10 +270,12 @@ def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start
     """Hu et al. §5.4, Algorithm 2: greedy tree over ``adjacency`` from segment start → end.
 
     ``points`` (n, 3) candidate points, ``adjacency`` the CSR graph of
-    :func:`~.graph.build_graph`, ``directions`` (n, 3) unit vectors u_j from
+    :func:`~.graph.build_graph` (or its :class:`~.graph.CSRArrays`),
+    ``directions`` (n, 3) unit vectors u_j from
     :func:`~.direction.direction_field`.  Pure function; the loop is a
     compiled kernel (:mod:`sylva.core.jit`).  β_j does not depend on the
-    parent segment and is tested once per directed edge.
+    parent segment: it is tested when p_i is expanded (each point is at most
+    once), for its unvisited neighbours only.
 
     Q is keyed by α/α_max in the paper; the kernel keys it by −cos α, the
     same order (arccos is decreasing) without an arccos per push.  Ties go
@@ -308,9 +305,9 @@ def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start
     first_seg = points[end] - points[start]
     v0 = first_seg / np.linalg.norm(first_seg) if end != start else np.zeros(3)
     pon, parent, cos_alpha, m, visited = _greedy_kernel(
-        points, np.asarray(adjacency.indptr, dtype=np.int64), np.asarray(adjacency.indices, dtype=np.int64),
-        directions, start, end, v0, float(np.cos(np.radians(alpha_max_deg))),
-        float(np.cos(np.radians(beta_max_deg))), float(np.cos(np.radians(phi_max_deg))), bool(regrow_pruned))
+        points, adjacency.indptr, adjacency.indices, directions, start, end, v0,
+        float(np.cos(np.radians(alpha_max_deg))), float(np.cos(np.radians(beta_max_deg))),
+        float(np.cos(np.radians(phi_max_deg))), bool(regrow_pruned))
     pon, parent, cos_alpha = pon[:m].copy(), parent[:m].copy(), cos_alpha[:m]
     alpha = np.full(m, np.nan)
     grown = slice(2 if end != start else 1, None)
@@ -454,18 +451,19 @@ class GreedySkeleton:
         t0 = time.perf_counter()
         added = trunk.points[1:]                      # the root joins the candidates on its own
         all_xyz = np.concatenate([xyz, added])
-        is_added_pt = np.r_[np.zeros(len(xyz), bool), np.ones(len(added), bool)]
+        is_added_pt = np.zeros(len(all_xyz), bool)
+        is_added_pt[len(xyz):] = True
         thin = thin_voxels(all_xyz, self.voxel_m, keep=is_added_pt)
-        measured = np.bincount(thin.voxel_of_point[~is_added_pt], minlength=len(thin.voxel_means))
+        measured = np.bincount(thin.voxel_of_point[:len(xyz)], minlength=len(thin.voxel_means))
         cand = np.concatenate([trunk.root[None, :], thin.points])
-        cand_added = np.r_[True, measured[thin.voxel_index] == 0]
+        cand_added = np.concatenate([[True], measured[thin.voxel_index] == 0])
         stats.update(t_thinning_s=time.perf_counter() - t0, n_voxels=int(len(thin.voxel_means)),
                      n_candidates=int(len(cand)), thinning_passes=int(thin.passes))
         report(progress, 0.3, "thinning")
 
         check(cancelled)
         t0 = time.perf_counter()
-        graph = build_graph(cand, self.radius_m, self.k)
+        graph = graph_arrays(cand, self.radius_m, self.k)       # the CSR arrays, no scipy matrix
         stats.update(t_graph_s=time.perf_counter() - t0, n_edges=graph.n_edges,
                      n_components=graph.n_components, n_knn=graph.n_knn)
         report(progress, 0.5, "graph")

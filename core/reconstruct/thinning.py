@@ -26,10 +26,14 @@ never deleted.
 
 The sub-iterations run as a compiled kernel (:mod:`sylva.core.jit`, numba)
 that tests simplicity on 26-bit neighbourhood masks by flood fill;
-:func:`is_simple` is the vectorised numpy form of the same test.
+:func:`is_simple` is the vectorised numpy form of the same test.  The
+voxelisation (voxel of each point, voxel means, the table of the 26
+neighbours) is a kernel as well; tests/test_skeleton_kernel.py compares
+both with the numpy code they replaced.
 """
 from __future__ import annotations
 
+import math
 from itertools import product
 from typing import NamedTuple, Optional
 
@@ -137,6 +141,12 @@ _ADJ6_MASK = np.array([sum(1 << int(q) for q in row if q != _SENTINEL) for row i
 _N18_MASK = np.int64(sum(1 << int(q) for q in _N18))
 _FACE_MASK = np.int64(sum(1 << int(q) for q in _FACE))
 _DIRECTIONS_ARR = np.array(_DIRECTIONS, dtype=np.int64)
+# The forward half of the 3x3x3 neighbourhood (offsets after the centre, ``_OFFSETS[13:]``, the
+# mirror image of ``_OFFSETS[12::-1]``) by columns (dx, dy): dx, dy and the numbers of their
+# dz = -1, 0, 1 neighbours, -1 for the centre and the offset before it.
+_COLUMNS = np.array([[dx, dy] + [int(np.flatnonzero((_OFFSETS == (dx, dy, dz)).all(axis=1))[0])
+                                 if (dx, dy, dz) > (0, 0, 0) else -1 for dz in (-1, 0, 1)]
+                     for dx, dy in product((-1, 0, 1), repeat=2) if (dx, dy) >= (0, 0)], dtype=np.int64)
 
 
 @njit
@@ -146,12 +156,24 @@ def _thin_kernel(nbr, keep, directions, adj26, adj6, n18, faces, max_passes):
     ``nbr`` (v, 26) neighbour voxel ids (v = white), ``keep`` protected
     voxels; simplicity as :func:`is_simple`, on 26-bit masks.  Returns the
     black flags (v + 1, the last one the white sentinel) and the passes.
+    Each voxel's mask of black neighbours is kept up to date as voxels are
+    deleted (neighbour q of y sees y as its neighbour 25 - q), and whether
+    it is deletable (simple, not an end point) is remembered until its mask
+    changes: the test is a pure function of the mask (Sylva, not in the paper).
     """
     v = nbr.shape[0]
     black = np.empty(v + 1, np.bool_)
     for x in range(v):
         black[x] = True
     black[v] = False
+    cfg = np.zeros(v, np.int64)                 # bit q: neighbour q is black
+    for x in range(v):
+        c = 0
+        for q in range(26):
+            if nbr[x, q] < v:
+                c |= 1 << q
+        cfg[x] = c
+    state = np.zeros(v, np.int8)                # 0 not known, 1 deletable, 2 not deletable
     ids = np.empty(v, np.int64)
     go = np.empty(v, np.int64)
     is_cand = np.zeros(v + 1, np.bool_)
@@ -160,10 +182,10 @@ def _thin_kernel(nbr, keep, directions, adj26, adj6, n18, faces, max_passes):
         passes += 1
         deleted = 0
         for dd in range(directions.shape[0]):
-            d = directions[dd]
+            bit = 1 << directions[dd]
             m = 0
             for x in range(v):
-                if black[x] and not keep[x] and not black[nbr[x, d]]:
+                if black[x] and not keep[x] and (cfg[x] & bit) == 0:
                     ids[m] = x
                     m += 1
             while m > 0:
@@ -171,50 +193,47 @@ def _thin_kernel(nbr, keep, directions, adj26, adj6, n18, faces, max_passes):
                 m2 = 0
                 for t in range(m):
                     x = ids[t]
-                    if black[nbr[x, d]]:
+                    c = cfg[x]
+                    if c & bit:
                         continue
-                    cfg = 0
-                    cnt = 0
-                    for q in range(26):
-                        if black[nbr[x, q]]:
-                            cfg |= 1 << q
-                            cnt += 1
-                    if cnt < 2:
-                        continue
-                    # black 26-neighbours: exactly one 26-connected component
-                    rem = cfg
-                    low = rem & -rem
-                    comp = low
-                    front = low
-                    while front != 0:
-                        p = 0
-                        while ((front >> p) & 1) == 0:
-                            p += 1
-                        front &= front - 1
-                        new = adj26[p] & rem & ~comp
-                        comp |= new
-                        front |= new
-                    if comp != cfg:
-                        continue
-                    # white 18-neighbours: exactly one 6-connected component holding a face
-                    rem = ~cfg & n18
-                    ncomp = 0
-                    while rem != 0 and ncomp < 2:
-                        low = rem & -rem
-                        comp = low
-                        front = low
-                        while front != 0:
-                            p = 0
-                            while ((front >> p) & 1) == 0:
-                                p += 1
-                            front &= front - 1
-                            new = adj6[p] & rem & ~comp
-                            comp |= new
-                            front |= new
-                        rem &= ~comp
-                        if comp & faces:
-                            ncomp += 1
-                    if ncomp != 1:
+                    if state[x] == 0:
+                        state[x] = 2
+                        if c & (c - 1):             # at least two black neighbours
+                            # black 26-neighbours: exactly one 26-connected component
+                            rem = c
+                            low = rem & -rem
+                            comp = low
+                            front = low
+                            while front != 0:
+                                p = 0
+                                while ((front >> p) & 1) == 0:
+                                    p += 1
+                                front &= front - 1
+                                new = adj26[p] & rem & ~comp
+                                comp |= new
+                                front |= new
+                            if comp == c:
+                                # white 18-neighbours: exactly one 6-connected component holding a face
+                                rem = ~c & n18
+                                ncomp = 0
+                                while rem != 0 and ncomp < 2:
+                                    low = rem & -rem
+                                    comp = low
+                                    front = low
+                                    while front != 0:
+                                        p = 0
+                                        while ((front >> p) & 1) == 0:
+                                            p += 1
+                                        front &= front - 1
+                                        new = adj6[p] & rem & ~comp
+                                        comp |= new
+                                        front |= new
+                                    rem &= ~comp
+                                    if comp & faces:
+                                        ncomp += 1
+                                if ncomp == 1:
+                                    state[x] = 1
+                    if state[x] != 1:
                         continue
                     ids[m2] = x
                     m2 += 1
@@ -244,14 +263,97 @@ def _thin_kernel(nbr, keep, directions, adj26, adj6, n18, faces, max_passes):
                 for t in range(m3):
                     is_cand[ids[t]] = False
                 for t in range(ngo):
-                    is_cand[go[t]] = False
-                    black[go[t]] = False
+                    y = go[t]
+                    is_cand[y] = False
+                    black[y] = False
+                    for q in range(26):
+                        x = nbr[y, q]
+                        if x < v:
+                            cfg[x] &= ~(1 << (25 - q))
+                            state[x] = 0
                 deleted += ngo
                 m = m3
         if deleted == 0:
             break
     return black, passes
 
+
+@njit
+def _voxel_grid(xyz, voxel_m, keep, columns):
+    """Black voxels of ``xyz`` (see :func:`thin_voxels`); plain loops for numba.
+
+    Returns the black voxel of each point, the voxel means, the protected
+    voxels and the (v, 26) neighbour table (v = white).  Voxels are numbered
+    by key (x, then y, then z), as ``np.unique`` numbers them; the means add
+    the points in their order, as ``np.bincount`` does.  Neighbours are found
+    without a dense grid: per column of neighbours (dx, dy) (``columns``:
+    dx, dy and the neighbour numbers of dz = -1, 0, 1, -1 where none), one
+    pointer walks the sorted keys (the key of a voxel's neighbour grows with
+    the voxel's key), the three dz being consecutive keys.  The columns are
+    the forward half of the neighbourhood (offsets after the centre in
+    ``_OFFSETS``); the backward half follows by symmetry (offset q of x is
+    offset 25 - q of its neighbour).
+    """
+    n = xyz.shape[0]
+    origin = np.empty(3)
+    for a in range(3):
+        origin[a] = xyz[0, a]
+    for p in range(1, n):
+        for a in range(3):
+            origin[a] = min(origin[a], xyz[p, a])
+    ijk = np.empty((n, 3), np.int64)
+    dims = np.zeros(3, np.int64)
+    for p in range(n):
+        for a in range(3):
+            c = int(math.floor((xyz[p, a] - origin[a]) / voxel_m)) + 1   # +1: room for -1 offsets
+            ijk[p, a] = c
+            dims[a] = max(dims[a], c)
+    for a in range(3):
+        dims[a] += 2
+    key = np.empty(n, np.int64)
+    for p in range(n):
+        key[p] = (ijk[p, 0] * dims[1] + ijk[p, 1]) * dims[2] + ijk[p, 2]
+    order = np.argsort(key)
+    inv = np.empty(n, np.int64)
+    ukey = np.empty(n, np.int64)
+    v = 0
+    for t in range(n):
+        p = order[t]
+        if v == 0 or key[p] != ukey[v - 1]:
+            ukey[v] = key[p]
+            v += 1
+        inv[p] = v - 1
+    counts = np.zeros(v)
+    means = np.zeros((v, 3))
+    for p in range(n):
+        x = inv[p]
+        counts[x] += 1.0
+        for a in range(3):
+            means[x, a] += xyz[p, a]
+    for x in range(v):
+        for a in range(3):
+            means[x, a] /= counts[x]
+    vkeep = np.zeros(v, np.bool_)
+    for p in range(n):
+        if keep[p]:
+            vkeep[inv[p]] = True
+    nbr = np.full((v, 26), v, np.int64)
+    for col in range(columns.shape[0]):
+        off = (columns[col, 0] * dims[1] + columns[col, 1]) * dims[2] - 1     # the key of dz = -1
+        ptr = 0
+        for x in range(v):
+            target = ukey[x] + off
+            while ptr < v and ukey[ptr] < target:
+                ptr += 1
+            p = ptr
+            for dz in range(3):
+                q = columns[col, 2 + dz]
+                while p < v and ukey[p] < target + dz:
+                    p += 1
+                if q >= 0 and p < v and ukey[p] == target + dz:
+                    nbr[x, q] = p
+                    nbr[p, 25 - q] = x          # x is p's neighbour -offset
+    return inv, means, vkeep, nbr
 
 
 class Thinned(NamedTuple):
@@ -274,32 +376,10 @@ def thin_voxels(xyz: np.ndarray, voxel_m: float = 0.2, keep: Optional[np.ndarray
     voxel index x, then y, then z) and the bookkeeping to map points to voxels.
     Pure function of its inputs.
     """
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    n = len(xyz)
-    origin = xyz.min(axis=0)
-    ijk = np.floor((xyz - origin) / voxel_m).astype(np.int64) + 1   # +1: room for -1 offsets
-    dims = ijk.max(axis=0) + 2
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    ukey, inv = np.unique(key, return_inverse=True)
-    v = len(ukey)
-    counts = np.bincount(inv, minlength=v).astype(np.float64)
-    means = np.stack([np.bincount(inv, weights=xyz[:, c], minlength=v) for c in range(3)], axis=1)
-    means /= counts[:, None]
-    vkeep = np.zeros(v, dtype=bool)
-    if keep is not None:
-        vkeep[inv[np.asarray(keep, dtype=bool)]] = True
-
-    # Neighbour table: voxel id of each of the 26 neighbours, v where white.
-    nkey = ukey[:, None] + ((_OFFSETS[:, 0] * dims[1] + _OFFSETS[:, 1]) * dims[2] + _OFFSETS[:, 2])[None, :]
-    cells = int(np.prod(dims))
-    if cells <= 16_000_000:
-        grid = np.full(cells, v, dtype=np.int32)
-        grid[ukey] = np.arange(v, dtype=np.int32)
-        nbr = grid[nkey].astype(np.int64)                               # (v, 26), v = white
-    else:
-        pos = np.minimum(np.searchsorted(ukey, nkey), v - 1)
-        nbr = np.where(ukey[pos] == nkey, pos, v)
-
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3)
+    keep = np.zeros(len(xyz), dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    inv, means, vkeep, nbr = _voxel_grid(xyz, float(voxel_m), keep, _COLUMNS)
+    v = len(means)
     black, passes = _thin_kernel(nbr, vkeep, _DIRECTIONS_ARR, _ADJ26_MASK, _ADJ6_MASK, _N18_MASK, _FACE_MASK,
                                  int(max_passes))
     survivors = np.flatnonzero(black[:v])

@@ -34,9 +34,12 @@ added trunk is a 26-connected run of voxels in §5.1's voxel space.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+
+from ..jit import njit
 
 
 class Trunk(NamedTuple):
@@ -51,14 +54,61 @@ class Trunk(NamedTuple):
     v_low: np.ndarray       # (3,) lowest tree point
 
 
+@njit
+def _trunk_stats(xyz, radius_m):
+    """Bounding box, centroid v_c, lowest point and the mean unit direction from
+    it to its neighbours within ``radius_m`` (and their number); plain loops for numba.
+
+    Sums run over the points in order, from the first point on, and lengths
+    are sqrt((x² + y²) + z²): what numpy's ``mean(axis=0)`` and
+    ``linalg.norm(axis=1)`` compute for a C-ordered (n, 3) array, bit for bit
+    (tests/test_skeleton_kernel.py compares them).
+    """
+    n = xyz.shape[0]
+    lo = xyz[0].copy()
+    hi = xyz[0].copy()
+    total = xyz[0].copy()
+    low = 0
+    for p in range(1, n):
+        for a in range(3):
+            v = xyz[p, a]
+            lo[a] = min(lo[a], v)
+            hi[a] = max(hi[a], v)
+            total[a] += v
+        if xyz[p, 2] < xyz[low, 2]:
+            low = p
+    v_c = total / n
+    mean = np.zeros(3)
+    n_near = 0
+    for p in range(n):
+        dx = xyz[p, 0] - xyz[low, 0]
+        dy = xyz[p, 1] - xyz[low, 1]
+        dz = xyz[p, 2] - xyz[low, 2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if norm <= radius_m and norm > 1e-9:       # the sphere of radius r, v_low excluded
+            if n_near == 0:
+                mean[0] = dx / norm
+                mean[1] = dy / norm
+                mean[2] = dz / norm
+            else:
+                mean[0] += dx / norm
+                mean[1] += dy / norm
+                mean[2] += dz / norm
+            n_near += 1
+    if n_near:
+        mean /= n_near
+    return lo, hi, v_c, low, n_near, mean
+
+
 def _interpolate(start: np.ndarray, stop: np.ndarray, spacing_m: float) -> np.ndarray:
     """Points from ``start`` to ``stop`` inclusive, at most ``spacing_m`` apart."""
     length = float(np.linalg.norm(stop - start))
     if length < 1e-12:
         return start[None, :].copy()
     n = max(1, int(np.ceil(length / spacing_m)))
-    t = np.linspace(0.0, 1.0, n + 1)[:, None]
-    return start[None, :] + t * (stop - start)[None, :]
+    t = np.arange(n + 1, dtype=np.float64) * (1.0 / n)     # np.linspace(0, 1, n + 1), without its overhead
+    t[-1] = 1.0
+    return start[None, :] + t[:, None] * (stop - start)[None, :]
 
 
 def add_trunk_points(
@@ -78,11 +128,13 @@ def add_trunk_points(
     ``v_c`` for Eq. 4.  Pure function of its inputs.
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    if len(xyz) == 0:
+        raise ValueError("add_trunk_points: no points")
+    lo, hi, v_c, low, n_near, mean = _trunk_stats(np.ascontiguousarray(xyz), float(radius_m))
+    if not xyz.flags.c_contiguous:
+        v_c = xyz.mean(axis=0)          # numpy sums another layout in another order
     v_b = (lo + hi) / 2.0
     g_b = np.array([v_b[0], v_b[1], ground_z])          # centre of the ground box S'
-    v_c = xyz.mean(axis=0)
-    low = int(np.argmin(xyz[:, 2]))
     v_low = xyz[low]
     h = max(0.0, float(v_low[2] - ground_z))
 
@@ -94,17 +146,14 @@ def add_trunk_points(
     # n_avg from the unit directions v_low -> v_j of the neighbours within r.
     lambda1 = float("nan")
     n_avg = None
-    d = xyz - v_low
-    norms = np.linalg.norm(d, axis=1)
-    near = (norms <= radius_m) & (norms > 1e-9)           # the sphere of radius r, v_low excluded
-    d = d[near] / norms[near, None]
-    if len(d):
-        mean = d.mean(axis=0)
-        if np.linalg.norm(mean) > 1e-9:
-            n_avg = mean / np.linalg.norm(mean)
+    if n_near:
+        mean_norm = np.linalg.norm(mean)
+        if mean_norm > 1e-9:
+            n_avg = mean / mean_norm
             centre_line = v_b - g_b
-            if np.linalg.norm(centre_line) > 1e-9:
-                cl = centre_line / np.linalg.norm(centre_line)
+            cl_norm = np.linalg.norm(centre_line)
+            if cl_norm > 1e-9:
+                cl = centre_line / cl_norm
             else:
                 cl = np.array([0.0, 0.0, 1.0])
             lambda1 = float(np.degrees(np.arccos(np.clip(n_avg @ cl, -1.0, 1.0))))
