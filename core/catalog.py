@@ -43,7 +43,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .atomic import atomic_path, atomic_write_bytes
+from .atomic import _umask, atomic_path, atomic_write_bytes
 from .errors import Cancelled, InputError, SylvaError
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile, tree_ids
 from .progress import CancelCheck, Progress, check, report
@@ -352,77 +352,203 @@ def _remap_las(path, mapping: dict) -> None:
 MERGE_MMAP_BYTES = 1 << 30
 
 
-def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
-    """Concatenate the layers of per-tile GeoPackages into one at ``path``, table by table in SQL.
+class GpkgMerge:
+    """Appends per-tile GeoPackages to one (``path``, a new file), table by table in SQL.
 
     Memory stays bounded (sqlite copies rows); extents are the union of the parts'.
+    :meth:`add` returns the fids each table's new rows got, which :meth:`remap`
+    takes to rewrite their ``tree_id`` values.  The connection may be handed from
+    one thread to another (never used by two at once).
+    """
+
+    def __init__(self, path):
+        from .io.gpkg import new_file_pragmas
+
+        self.con = sqlite3.connect(path, check_same_thread=False)
+        # a temporary file renamed at the end: no journal, no fsync per part, larger pages
+        new_file_pragmas(self.con)
+        self.con.execute(f"PRAGMA mmap_size = {MERGE_MMAP_BYTES}")   # parts attached later are read mapped too
+        self.con.execute("PRAGMA application_id = 1196444487")
+        self.con.execute("PRAGMA user_version = 10200")
+        self.created: Dict[str, set] = {}
+        self.parts = 0
+
+    def add(self, part) -> Dict[str, tuple]:
+        """Append the layers of the GeoPackage ``part``; returns {table: (first fid - 1, last fid)}."""
+        con = self.con
+        ranges = {}
+        con.execute("ATTACH DATABASE ? AS part", (str(part),))
+        try:
+            if self.parts == 0:
+                for (sql,) in con.execute("SELECT sql FROM part.sqlite_master WHERE type='table' AND name LIKE 'gpkg_%'"):
+                    con.execute(sql)
+                con.execute("INSERT INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
+                con.execute("INSERT INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
+                con.execute("INSERT INTO gpkg_contents SELECT * FROM part.gpkg_contents")
+            else:
+                con.execute("INSERT OR IGNORE INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
+                con.execute("INSERT OR IGNORE INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
+                con.execute("INSERT OR IGNORE INTO gpkg_contents SELECT * FROM part.gpkg_contents")
+                con.execute(
+                    "UPDATE gpkg_contents SET "
+                    "min_x = min(coalesce(min_x, (SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                    "coalesce((SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_x)), "
+                    "min_y = min(coalesce(min_y, (SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                    "coalesce((SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_y)), "
+                    "max_x = max(coalesce(max_x, (SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                    "coalesce((SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_x)), "
+                    "max_y = max(coalesce(max_y, (SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
+                    "coalesce((SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_y))")
+            tables = [r[0] for r in con.execute(
+                "SELECT name FROM part.sqlite_master WHERE type='table' AND name NOT LIKE 'gpkg_%' "
+                "AND name NOT LIKE 'sqlite_%'")]
+            for t in tables:
+                cols = [r[1] for r in con.execute(f'PRAGMA part.table_info("{t}")') if r[1] != "fid"]
+                if t not in self.created:
+                    (sql,) = con.execute("SELECT sql FROM part.sqlite_master WHERE name = ?", (t,)).fetchone()
+                    con.execute(sql)
+                    self.created[t] = set(cols)
+                for c in cols:
+                    if c not in self.created[t]:
+                        con.execute(f'ALTER TABLE "{t}" ADD COLUMN "{c}"')
+                        self.created[t].add(c)
+                q = ",".join(f'"{c}"' for c in cols)
+                (before,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
+                con.execute(f'INSERT INTO main."{t}" ({q}) SELECT {q} FROM part."{t}"')
+                (after,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
+                if "tree_id" in cols:
+                    ranges[t] = (before, after)
+            con.commit()
+        finally:
+            con.execute("DETACH DATABASE part")
+        self.parts += 1
+        return ranges
+
+    def remap(self, ranges: Dict[str, tuple], mapping: dict) -> None:
+        """Rewrite ``tree_id`` {old: new} in the rows ``ranges`` (what :meth:`add` returned for a part)."""
+        if not mapping or not ranges:
+            return
+        con = self.con
+        con.execute("CREATE TEMP TABLE IF NOT EXISTS idmap (old INTEGER PRIMARY KEY, new INTEGER)")
+        con.execute("DELETE FROM idmap")
+        con.executemany("INSERT INTO idmap VALUES (?,?)", list(mapping.items()))
+        for t, (lo, hi) in ranges.items():
+            con.execute(f'UPDATE main."{t}" SET tree_id = (SELECT new FROM idmap WHERE old = tree_id) '
+                        f'WHERE fid > ? AND fid <= ? AND tree_id IN (SELECT old FROM idmap)', (lo, hi))
+        con.commit()
+
+    def close(self) -> None:
+        self.con.commit()
+        self.con.close()
+
+
+def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
+    """Concatenate the layers of per-tile GeoPackages into one at ``path`` (:class:`GpkgMerge`).
+
     ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
     The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
     pipeline and merged here like the others.
     """
-    from .io.gpkg import new_file_pragmas
-
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
     with atomic_path(path) as tmp:
-        con = sqlite3.connect(tmp)
+        merge = GpkgMerge(tmp)
         try:
-            # a temporary file renamed at the end: no journal, no fsync per part, larger pages
-            new_file_pragmas(con)
-            con.execute(f"PRAGMA mmap_size = {MERGE_MMAP_BYTES}")   # parts attached later are read mapped too
-            con.execute("PRAGMA application_id = 1196444487")
-            con.execute("PRAGMA user_version = 10200")
-            created = {}
-            for k, part in enumerate(parts):
-                con.execute("ATTACH DATABASE ? AS part", (str(part),))
-                if k == 0:
-                    for (sql,) in con.execute("SELECT sql FROM part.sqlite_master WHERE type='table' AND name LIKE 'gpkg_%'"):
-                        con.execute(sql)
-                    con.execute("INSERT INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                    con.execute("INSERT INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                    con.execute("INSERT INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-                else:
-                    con.execute("INSERT OR IGNORE INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                    con.execute("INSERT OR IGNORE INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                    con.execute("INSERT OR IGNORE INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-                    con.execute(
-                        "UPDATE gpkg_contents SET "
-                        "min_x = min(coalesce(min_x, (SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                        "coalesce((SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_x)), "
-                        "min_y = min(coalesce(min_y, (SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                        "coalesce((SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_y)), "
-                        "max_x = max(coalesce(max_x, (SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                        "coalesce((SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_x)), "
-                        "max_y = max(coalesce(max_y, (SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                        "coalesce((SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_y))")
-                tables = [r[0] for r in con.execute(
-                    "SELECT name FROM part.sqlite_master WHERE type='table' AND name NOT LIKE 'gpkg_%' "
-                    "AND name NOT LIKE 'sqlite_%'")]
-                for t in tables:
-                    cols = [r[1] for r in con.execute(f'PRAGMA part.table_info("{t}")') if r[1] != "fid"]
-                    if t not in created:
-                        (sql,) = con.execute("SELECT sql FROM part.sqlite_master WHERE name = ?", (t,)).fetchone()
-                        con.execute(sql)
-                        created[t] = set(cols)
-                    for c in cols:
-                        if c not in created[t]:
-                            con.execute(f'ALTER TABLE "{t}" ADD COLUMN "{c}"')
-                            created[t].add(c)
-                    q = ",".join(f'"{c}"' for c in cols)
-                    (before,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
-                    con.execute(f'INSERT INTO main."{t}" ({q}) SELECT {q} FROM part."{t}"')
-                    if id_maps[k] and "tree_id" in cols:
-                        con.execute("CREATE TEMP TABLE IF NOT EXISTS idmap (old INTEGER PRIMARY KEY, new INTEGER)")
-                        con.execute("DELETE FROM idmap")
-                        con.executemany("INSERT INTO idmap VALUES (?,?)", list(id_maps[k].items()))
-                        con.execute(f'UPDATE main."{t}" SET tree_id = (SELECT new FROM idmap WHERE old = tree_id) '
-                                    f'WHERE fid > ? AND tree_id IN (SELECT old FROM idmap)', (before,))
-                con.commit()
-                con.execute("DETACH DATABASE part")
-            con.commit()
+            for part, mapping in zip(parts, id_maps):
+                merge.remap(merge.add(part), mapping)
         finally:
-            con.close()
+            merge.close()
     return Path(path)
+
+
+class _BackgroundMerge:
+    """Merges the tiles' GeoPackages into ``forest.gpkg`` in a thread while the tiles are processed.
+
+    Parts are appended in ``order`` (the run's deterministic processing order,
+    so the merged rows do not depend on which worker finished first) as soon as
+    each is :meth:`ready`; the merge of the first parts thus overlaps the work on
+    the last ones (Sylva, not in a paper).  :meth:`finish` waits for the rest;
+    :meth:`remap` then rewrites IDs; :meth:`commit` moves the file into place;
+    leaving its ``with`` block on an exception removes it (:meth:`discard`).
+    """
+
+    def __init__(self, path: Path, order: Sequence[str]):
+        import tempfile
+        import threading
+
+        self.path = Path(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=str(self.path.parent))
+        os.close(fd)
+        self.tmp = Path(tmp)
+        self.order = list(order)
+        self.parts: Dict[str, Optional[Path]] = {}
+        self.ranges: Dict[str, Dict[str, tuple]] = {}
+        self.error: Optional[BaseException] = None
+        self.merge: Optional[GpkgMerge] = None
+        self._cond = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="sylva-merge", daemon=True)
+        self._thread.start()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb):
+        if kind is not None:          # an error or a cancel: no half-written forest.gpkg
+            self.discard()
+        return False
+
+    def ready(self, name: str, part: Optional[Path]) -> None:
+        """Tile ``name`` is final: its GeoPackage ``part``, or None when it failed."""
+        with self._cond:
+            self.parts[name] = part
+            self._cond.notify()
+
+    def _run(self) -> None:
+        try:
+            self.merge = GpkgMerge(self.tmp)
+            for name in self.order:
+                with self._cond:
+                    while name not in self.parts and not self._stop:
+                        self._cond.wait()
+                    if self._stop:
+                        return
+                    part = self.parts[name]
+                if part is not None:
+                    self.ranges[name] = self.merge.add(part)
+        except BaseException as err:  # noqa: BLE001 — re-raised by finish()
+            self.error = err
+
+    def finish(self) -> None:
+        self._thread.join()
+        if self.error is not None:
+            raise self.error
+
+    def remap(self, name: str, mapping: dict) -> None:
+        self.merge.remap(self.ranges.get(name, {}), mapping)
+
+    def commit(self) -> Optional[Path]:
+        """The merged file in place (None, and nothing written, when no part was merged)."""
+        self.merge.close()
+        if self.merge.parts == 0:
+            self.tmp.unlink()
+            return None
+        os.chmod(self.tmp, 0o666 & ~_umask())
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def discard(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join()
+        if self.merge is not None:
+            try:
+                self.merge.close()
+            except sqlite3.Error:
+                pass
+        if self.tmp.exists():
+            self.tmp.unlink()
 
 
 def write_root_tileset(folder, tilesets: Sequence[Path]) -> Optional[Path]:
@@ -531,71 +657,75 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     if not tiles:
         raise InputError("no readable tile: " + "; ".join(f["reason"] for f in failures))
     jobs = make_jobs(tiles, out, options)
-    records: Dict[str, dict] = {}
-    skipped = []
-    todo = []
-    for job in jobs:
-        rec = is_complete(job) if resume else None
-        if rec is not None:
-            records[job.name] = rec
-            skipped.append(job.name)
-        else:
-            todo.append(job)
     # Largest tiles first (longest-processing-time order): no big tile is left to run alone at the end.
+    # forest.gpkg takes the tiles' rows in this order too (deterministic: sizes, then names).
     points = {t.name: t.points for t in tiles}
-    todo.sort(key=lambda j: -points[j.name])
-    total = max(len(jobs), 1)
-    state = {"done": len(skipped)}
+    order = sorted(jobs, key=lambda j: -points[j.name])
+    with _BackgroundMerge(out / "forest.gpkg", [j.name for j in order]) as merger:
+        records: Dict[str, dict] = {}
+        skipped = []
+        todo = []
+        for job in order:
+            rec = is_complete(job) if resume else None
+            if rec is not None:
+                records[job.name] = rec
+                skipped.append(job.name)
+                merger.ready(job.name, part_paths(out, job.name)["gpkg"])
+            else:
+                todo.append(job)
+        total = max(len(jobs), 1)
+        state = {"done": len(skipped)}
 
-    def on_done(job: TileJob, record, err):
-        if err is not None:
-            if isinstance(err, Cancelled):
-                raise err
-            if job.attempt < 2:
-                retry = replace(job, attempt=job.attempt + 1)
-                if scheduler is None and workers <= 1:
-                    try:
-                        on_done(retry, process_tile(retry, cancelled=cancelled), None)
-                    except Cancelled:
-                        raise
-                    except Exception as err2:  # noqa: BLE001
-                        on_done(retry, None, err2)
-                    return None
-                return retry
-            failures.append(_failure(job, err))
-        else:
-            records[job.name] = record
-        state["done"] += 1
-        report(progress, 0.9 * state["done"] / total, f"{state['done']} of {total} tiles")
-        return None
+        def on_done(job: TileJob, record, err):
+            if err is not None:
+                if isinstance(err, Cancelled):
+                    raise err
+                if job.attempt < 2:
+                    retry = replace(job, attempt=job.attempt + 1)
+                    if scheduler is None and workers <= 1:
+                        try:
+                            on_done(retry, process_tile(retry, cancelled=cancelled), None)
+                        except Cancelled:
+                            raise
+                        except Exception as err2:  # noqa: BLE001
+                            on_done(retry, None, err2)
+                        return None
+                    return retry
+                failures.append(_failure(job, err))
+                merger.ready(job.name, None)
+            else:
+                records[job.name] = record
+                merger.ready(job.name, part_paths(out, job.name)["gpkg"])
+            state["done"] += 1
+            report(progress, 0.9 * state["done"] / total, f"{state['done']} of {total} tiles")
+            return None
 
-    if todo:
-        if scheduler is not None:
-            _run_dask(todo, scheduler, on_done, cancelled)
-        elif workers > 1:
-            _run_pool(todo, workers, on_done, cancelled)
-        else:
-            def tile_progress(job):
-                return lambda f, message="": report(progress, 0.9 * (state["done"] + f) / total, message)
+        if todo:
+            if scheduler is not None:
+                _run_dask(todo, scheduler, on_done, cancelled)
+            elif workers > 1:
+                _run_pool(todo, workers, on_done, cancelled)
+            else:
+                def tile_progress(job):
+                    return lambda f, message="": report(progress, 0.9 * (state["done"] + f) / total, message)
 
-            _run_serial(todo, on_done, cancelled, tile_progress)
-    check(cancelled)
-    report(progress, 0.9, "merging")
-    done = [records[j.name] for j in jobs if j.name in records]
-    maps = _resolve_ids(done, out, options.id_bits)
-    for name, mapping in maps.items():
-        _remap_las(part_paths(out, name)["las"], mapping)
-        ids_path = part_paths(out, name)["ids"]
-        z = dict(np.load(ids_path))
-        for k in ("owned_ids", "seen_ids"):
-            z[k] = np.array([mapping.get(int(v), int(v)) for v in z[k]], dtype=np.int64)
-        with atomic_path(ids_path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **z)
-    gpkg = None
-    if done:
-        gpkg = merge_gpkg([part_paths(out, r["name"])["gpkg"] for r in done], out / "forest.gpkg",
-                          [maps.get(r["name"], {}) for r in done])
+                _run_serial(todo, on_done, cancelled, tile_progress)
+        check(cancelled)
+        report(progress, 0.9, "merging")
+        merger.finish()
+        done = [records[j.name] for j in jobs if j.name in records]
+        maps = _resolve_ids(done, out, options.id_bits)
+        for name, mapping in maps.items():
+            merger.remap(name, mapping)
+            _remap_las(part_paths(out, name)["las"], mapping)
+            ids_path = part_paths(out, name)["ids"]
+            z = dict(np.load(ids_path))
+            for k in ("owned_ids", "seen_ids"):
+                z[k] = np.array([mapping.get(int(v), int(v)) for v in z[k]], dtype=np.int64)
+            with atomic_path(ids_path) as tmp:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, **z)
+        gpkg = merger.commit()
     shutil.rmtree(out / "parts" / "halo", ignore_errors=True)  # scratch: a rerun makes what it needs
     tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
     root = write_root_tileset(out / "models", tilesets) if tilesets else None

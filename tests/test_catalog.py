@@ -433,3 +433,53 @@ def test_merge_gpkg_gives_the_rows_of_the_reference_merge(tmp_path, remap):
     assert (1001 in {r[2] for r in got["trees"]}) == remap
     with closing(sqlite3.connect(new)) as con:
         assert con.execute("PRAGMA page_size").fetchone()[0] == PAGE_SIZE     # set before the file is created
+
+
+def _rows(path, table):
+    import sqlite3
+
+    con = sqlite3.connect(path)
+    try:
+        cols = [r[1] for r in con.execute(f'PRAGMA table_info("{table}")') if r[1] != "last_change"]
+        return con.execute(f'SELECT {",".join(cols)} FROM "{table}" ORDER BY fid').fetchall()
+    finally:
+        con.close()
+
+
+def test_forest_is_merged_while_tiles_run_in_processing_order(stand, tmp_path):
+    """The background merge gives the rows merge_gpkg gives the parts in processing order (largest
+    tile first, then by name), whatever the number of workers; nothing temporary is left."""
+    from sylva.core.catalog import merge_gpkg
+    from sylva.core.pipeline import part_paths
+
+    root, _, _ = stand
+    one = run_catalog([root / "three"], tmp_path / "w1", FAST, workers=1)
+    two = run_catalog([root / "three"], tmp_path / "w2", FAST, workers=2)
+    tiles, _ = list_tiles([root / "three"])
+    order = [t.name for t in sorted(tiles, key=lambda t: -t.points)]
+    assert order != sorted(order)                                   # the orders differ here
+    ref = merge_gpkg([part_paths(tmp_path / "w1", n)["gpkg"] for n in order], tmp_path / "ref.gpkg")
+    for table in ("trees", "crown_points", "crowns"):
+        expected = _rows(ref, table)
+        assert len(expected) > 10
+        assert _rows(one.gpkg, table) == expected == _rows(two.gpkg, table)
+    assert not list((tmp_path / "w1").glob(".forest.gpkg.*")) and not list((tmp_path / "w2").glob(".forest.gpkg.*"))
+
+
+def test_cancel_leaves_no_forest_behind(stand, tmp_path):
+    from sylva.core.errors import Cancelled
+
+    root, _, _ = stand
+    done = []
+
+    def cancelled():
+        return len(done) >= 3
+
+    def progress(f, message=""):
+        if message.endswith("tiles") and " of " in message:
+            done.append(message)
+
+    with pytest.raises(Cancelled):
+        run_catalog([root / "three"], tmp_path / "out", FAST, progress=progress, cancelled=cancelled)
+    assert not (tmp_path / "out" / "forest.gpkg").exists()
+    assert not list((tmp_path / "out").glob(".forest.gpkg.*"))
