@@ -227,13 +227,14 @@ class WorkerDied(SylvaError):
     """The process working on a tile died (killed for memory, or a crash in native code)."""
 
 
-def _run_pool(jobs, workers, on_done, cancelled, work=process_tile):
+def _run_pool(jobs, workers, on_done, cancelled, work=process_tile, idle=lambda: False):
     """Run ``work(job)`` in a process pool, at most ``workers`` tiles in flight.
 
     A worker that dies breaks the whole pool (``BrokenProcessPool`` for every
     tile in flight): those tiles are then rerun one at a time in a pool of
     their own, which finds the culprit — reported as :class:`WorkerDied`, not
     retried — and clears the innocent; the other tiles go on in a new pool.
+    ``idle()`` is called while no tile has finished (it returns False when it had nothing to do).
     """
     from collections import deque
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -251,7 +252,7 @@ def _run_pool(jobs, workers, on_done, cancelled, work=process_tile):
                     while source and not broken and len(pending) < size:
                         job = source.popleft()
                         pending[pool.submit(work, job)] = job
-                    done, _ = wait(list(pending), timeout=0.5, return_when=FIRST_COMPLETED)
+                    done, _ = wait(list(pending), timeout=0 if idle() else 0.5, return_when=FIRST_COMPLETED)
                     check(cancelled)
                     for fut in done:
                         job = pending.pop(fut)
@@ -274,7 +275,7 @@ def _run_pool(jobs, workers, on_done, cancelled, work=process_tile):
                 raise
 
 
-def _run_dask(jobs, scheduler, on_done, cancelled):
+def _run_dask(jobs, scheduler, on_done, cancelled, idle=lambda: False):
     try:
         from distributed import Client, wait
     except ImportError:
@@ -286,7 +287,7 @@ def _run_dask(jobs, scheduler, on_done, cancelled):
                    for job in jobs}
         while pending:
             try:
-                done = wait(list(pending), timeout=0.5, return_when="FIRST_COMPLETED").done
+                done = wait(list(pending), timeout=0 if idle() else 0.5, return_when="FIRST_COMPLETED").done
             except TimeoutError:
                 done = ()
             check(cancelled)
@@ -461,68 +462,59 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     return Path(path)
 
 
-class _BackgroundMerge:
-    """Merges the tiles' GeoPackages into ``forest.gpkg`` in a thread while the tiles are processed.
+class _OrderedMerge:
+    """Merges the tiles' GeoPackages into ``forest.gpkg`` while the tiles are processed.
 
     Parts are appended in ``order`` (the run's deterministic processing order,
-    so the merged rows do not depend on which worker finished first) as soon as
-    each is :meth:`ready`; the merge of the first parts thus overlaps the work on
-    the last ones (Sylva, not in a paper).  :meth:`finish` waits for the rest;
-    :meth:`remap` then rewrites IDs; :meth:`commit` moves the file into place;
-    leaving its ``with`` block on an exception removes it (:meth:`discard`).
+    so the merged rows do not depend on which worker finished first) as each
+    becomes :meth:`ready`; :meth:`step` appends the next one when the main
+    process has nothing else to do (the pool runners call it while they wait),
+    so the merge of the first parts overlaps the work on the last ones.  No
+    thread: the pools fork their workers from this process (Sylva, not in a
+    paper).  :meth:`finish` appends the rest; :meth:`remap` rewrites IDs;
+    :meth:`commit` moves the file into place; leaving the ``with`` block on an
+    exception (an error or a cancel) removes it.
     """
 
     def __init__(self, path: Path, order: Sequence[str]):
         import tempfile
-        import threading
 
         self.path = Path(path)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=str(self.path.parent))
         os.close(fd)
         self.tmp = Path(tmp)
+        self.merge = GpkgMerge(self.tmp)
         self.order = list(order)
+        self.next = 0
         self.parts: Dict[str, Optional[Path]] = {}
         self.ranges: Dict[str, Dict[str, tuple]] = {}
-        self.error: Optional[BaseException] = None
-        self.merge: Optional[GpkgMerge] = None
-        self._cond = threading.Condition()
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, name="sylva-merge", daemon=True)
-        self._thread.start()
 
     def __enter__(self):
         return self
 
     def __exit__(self, kind, value, tb):
-        if kind is not None:          # an error or a cancel: no half-written forest.gpkg
-            self.discard()
+        if kind is not None:
+            self.merge.close()
+            self.tmp.unlink(missing_ok=True)
         return False
 
     def ready(self, name: str, part: Optional[Path]) -> None:
         """Tile ``name`` is final: its GeoPackage ``part``, or None when it failed."""
-        with self._cond:
-            self.parts[name] = part
-            self._cond.notify()
+        self.parts[name] = part
 
-    def _run(self) -> None:
-        try:
-            self.merge = GpkgMerge(self.tmp)
-            for name in self.order:
-                with self._cond:
-                    while name not in self.parts and not self._stop:
-                        self._cond.wait()
-                    if self._stop:
-                        return
-                    part = self.parts[name]
-                if part is not None:
-                    self.ranges[name] = self.merge.add(part)
-        except BaseException as err:  # noqa: BLE001 — re-raised by finish()
-            self.error = err
+    def step(self) -> bool:
+        """Append the next part in order if it is ready; False when there was none to append."""
+        if self.next >= len(self.order) or self.order[self.next] not in self.parts:
+            return False
+        name = self.order[self.next]
+        self.next += 1
+        if self.parts[name] is not None:
+            self.ranges[name] = self.merge.add(self.parts[name])
+        return True
 
     def finish(self) -> None:
-        self._thread.join()
-        if self.error is not None:
-            raise self.error
+        while self.step():
+            pass
 
     def remap(self, name: str, mapping: dict) -> None:
         self.merge.remap(self.ranges.get(name, {}), mapping)
@@ -536,19 +528,6 @@ class _BackgroundMerge:
         os.chmod(self.tmp, 0o666 & ~_umask())
         os.replace(self.tmp, self.path)
         return self.path
-
-    def discard(self) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        self._thread.join()
-        if self.merge is not None:
-            try:
-                self.merge.close()
-            except sqlite3.Error:
-                pass
-        if self.tmp.exists():
-            self.tmp.unlink()
 
 
 def write_root_tileset(folder, tilesets: Sequence[Path]) -> Optional[Path]:
@@ -661,7 +640,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     # forest.gpkg takes the tiles' rows in this order too (deterministic: sizes, then names).
     points = {t.name: t.points for t in tiles}
     order = sorted(jobs, key=lambda j: -points[j.name])
-    with _BackgroundMerge(out / "forest.gpkg", [j.name for j in order]) as merger:
+    with _OrderedMerge(out / "forest.gpkg", [j.name for j in order]) as merger:
         records: Dict[str, dict] = {}
         skipped = []
         todo = []
@@ -702,9 +681,9 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
 
         if todo:
             if scheduler is not None:
-                _run_dask(todo, scheduler, on_done, cancelled)
+                _run_dask(todo, scheduler, on_done, cancelled, idle=merger.step)
             elif workers > 1:
-                _run_pool(todo, workers, on_done, cancelled)
+                _run_pool(todo, workers, on_done, cancelled, idle=merger.step)
             else:
                 def tile_progress(job):
                     return lambda f, message="": report(progress, 0.9 * (state["done"] + f) / total, message)

@@ -43,3 +43,11 @@ def die_on(name, job):
     if job.name == name:
         os._exit(9)
     return process_tile(job)
+
+
+def slow_name(seconds, job):
+    """A catalog worker function that takes ``seconds`` and returns the tile's name."""
+    import time
+
+    time.sleep(seconds)
+    return job.name

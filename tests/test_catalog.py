@@ -447,7 +447,7 @@ def _rows(path, table):
 
 
 def test_forest_is_merged_while_tiles_run_in_processing_order(stand, tmp_path):
-    """The background merge gives the rows merge_gpkg gives the parts in processing order (largest
+    """The merge during the run gives the rows merge_gpkg gives the parts in processing order (largest
     tile first, then by name), whatever the number of workers; nothing temporary is left."""
     from sylva.core.catalog import merge_gpkg
     from sylva.core.pipeline import part_paths
@@ -464,6 +464,33 @@ def test_forest_is_merged_while_tiles_run_in_processing_order(stand, tmp_path):
         assert len(expected) > 10
         assert _rows(one.gpkg, table) == expected == _rows(two.gpkg, table)
     assert not list((tmp_path / "w1").glob(".forest.gpkg.*")) and not list((tmp_path / "w2").glob(".forest.gpkg.*"))
+
+
+def test_the_pool_hands_its_waits_to_the_merge(stand, tmp_path):
+    """While tiles are in flight the pool calls idle() (the merge's step); a busy idle() is called
+    again at once, an idle one is not spun on; every tile still finishes."""
+    from functools import partial
+
+    from badfiles import slow_name
+    from sylva.core.catalog import _run_pool, make_jobs
+
+    root, _, _ = stand
+    tiles, _ = list_tiles([root / "three"])
+    jobs = make_jobs(tiles, tmp_path, FAST)
+    finished, calls = [], []
+
+    def on_done(job, record, err):
+        assert err is None and record == job.name
+        finished.append(job.name)
+
+    def idle():
+        calls.append(len(finished))
+        return len(calls) <= 3                      # three steps of work, then nothing to do
+
+    _run_pool(jobs, 2, on_done, None, work=partial(slow_name, 0.3), idle=idle)
+    assert sorted(finished) == sorted(j.name for j in jobs)
+    assert calls[:4] == [0, 0, 0, 0]                # called before any tile is back
+    assert len(calls) < 10 * len(jobs)              # not a busy loop once idle() has nothing to do
 
 
 def test_cancel_leaves_no_forest_behind(stand, tmp_path):
