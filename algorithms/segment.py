@@ -91,8 +91,9 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                   "distance between voxels (Eq. 2)."),
     "sigma_v_m": ("Vertical distance scale (m)", "Normalised cut: weight exp(-V/σ_v) of the vertical "
                   "distance (Eq. 2)."),
-    "sigma_intensity": ("Intensity scale", "Normalised cut: weight of intensity differences, in units of "
-                        "the tile's intensity spread (Eq. 2)."),
+    "sigma_intensity": ("Intensity scale", "Normalised cut: scale of intensity differences, in natural-log "
+                        "units: 1 means a ratio of e ≈ 2.7 between two voxels' intensities costs as much as "
+                        "σ_h of horizontal distance (Eq. 2)."),
     "sigma_colour": ("Colour scale", "Normalised cut: weight of RGB differences (0–1 colour units, Eq. 2); "
                      "ignored without RGB."),
     "top_window_points": ("Tree-top window: canopy points", "Normalised cut: on sparse clouds the tree-top "

@@ -398,7 +398,8 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     check(cancelled)
     keep = ~noise_mask(cloud)
     kept_idx = np.flatnonzero(keep)
-    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=opts.ground_cell_m)
+    # triangles wider than the buffer allows would make heights depend on the tiling
+    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=opts.ground_cell_m, tin_radius_m=opts.buffer_m / 2)
     report(progress, 0.1, f"{job.name}: tree tops")
     tops = find_tree_tops(work, window=FixedWindow(opts.window_diameter_m), min_height_m=opts.min_height_m,
                           cancelled=cancelled)

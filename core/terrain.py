@@ -543,9 +543,10 @@ def _walk(points, simplices, neighbors, query, order, max_steps):
 
 
 def _tin_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray,
-                     max_edge: Optional[float] = None) -> np.ndarray:
+                     max_edge: Optional[float] = None, max_radius: Optional[float] = None) -> np.ndarray:
     """Linear interpolation in the Delaunay triangulation of ``xy``; NaN outside the hull
-    and, when ``max_edge`` is given, inside triangles with an edge longer than it."""
+    and, when ``max_edge`` / ``max_radius`` is given, inside triangles with an edge longer
+    than it / with a circumradius larger than it."""
     out = np.full(len(query), np.nan)
     if len(xy) < 3 or len(query) == 0:
         return out
@@ -559,10 +560,17 @@ def _tin_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray,
     at_vertex = (values != 0) if max_edge is None and np.isfinite(values).all() else None
     simplex, bary = _locate(tri, query, at_vertex=at_vertex)
     inside = simplex >= 0
-    if max_edge is not None:
+    if max_edge is not None or max_radius is not None:
         pts = tri.points[tri.simplices]                       # (m, 3, 2)
-        edges = np.linalg.norm(pts - np.roll(pts, 1, axis=1), axis=2).max(axis=1)
-        inside &= np.where(inside, edges[simplex] <= max_edge, False)
+        sides = np.linalg.norm(pts - np.roll(pts, 1, axis=1), axis=2)
+        ok = np.ones(len(pts), dtype=bool)
+        if max_edge is not None:
+            ok &= sides.max(axis=1) <= max_edge
+        if max_radius is not None:                            # R = abc / (4 area)
+            u, v = pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]
+            area4 = 2.0 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
+            ok &= sides.prod(axis=1) <= max_radius * area4
+        inside &= np.where(inside, ok[np.maximum(simplex, 0)], False)
     return _tin_values(np.ascontiguousarray(values, dtype=np.float64), _int32(tri.simplices),
                        np.where(inside, simplex, -1), bary)
 
@@ -656,16 +664,19 @@ def _idw(tree: cKDTree, values: np.ndarray, query: np.ndarray, k: int, power: fl
 
 def ground_elevation(cloud: PointCloud, query_local: np.ndarray, method: str = "tin",
                      k: int = 10, power: float = 2.0, ground: Optional[np.ndarray] = None,
-                     cell_m: float = 0.0) -> np.ndarray:
+                     cell_m: float = 0.0, tin_radius_m: Optional[float] = None) -> np.ndarray:
     """Ground elevation (local metres) under local (x, y) positions, from the cloud's ground points.
 
     The ground points are first reduced to the lowest one per ``cell_m`` square
-    cell (0: keep every distinct position), the resolution of a fine DTM."""
-    return _ground_elevation(cloud, cloud.local_xyz(), query_local, method, k, power, ground, cell_m)
+    cell (0: keep every distinct position), the resolution of a fine DTM;
+    ``tin_radius_m``: see :func:`height_above_ground`."""
+    return _ground_elevation(cloud, cloud.local_xyz(), query_local, method, k, power, ground, cell_m,
+                             tin_radius_m)
 
 
 def _ground_elevation(cloud: PointCloud, loc: np.ndarray, query_local: np.ndarray, method: str,
-                      k: int, power: float, ground: Optional[np.ndarray], cell_m: float) -> np.ndarray:
+                      k: int, power: float, ground: Optional[np.ndarray], cell_m: float,
+                      tin_radius_m: Optional[float] = None) -> np.ndarray:
     """:func:`ground_elevation` given ``loc = cloud.local_xyz()``."""
     mask = ground_mask(cloud) if ground is None else np.asarray(ground, dtype=bool)
     if not mask.any():
@@ -678,7 +689,7 @@ def _ground_elevation(cloud: PointCloud, loc: np.ndarray, query_local: np.ndarra
     g = g[_lowest_per_cell(g, cell_m)]
     query = np.asarray(query_local, dtype=np.float64)[:, :2]
     if method == "tin":
-        out = _tin_interpolate(g[:, :2], g[:, 2], query)
+        out = _tin_interpolate(g[:, :2], g[:, 2], query, max_radius=tin_radius_m)
         outside = ~np.isfinite(out)
         if outside.any():
             out[outside] = _idw(cKDTree(g[:, :2]), g[:, 2], query[outside], k, power)
@@ -689,7 +700,8 @@ def _ground_elevation(cloud: PointCloud, loc: np.ndarray, query_local: np.ndarra
 
 
 def height_above_ground(cloud: PointCloud, method: str = "tin", k: int = 10, power: float = 2.0,
-                        ground: Optional[np.ndarray] = None, cell_m: float = 0.0) -> np.ndarray:
+                        ground: Optional[np.ndarray] = None, cell_m: float = 0.0,
+                        tin_radius_m: Optional[float] = None) -> np.ndarray:
     """Height of every point above the ground surface, float64 metres.
 
     ``method="tin"``: linear interpolation in the Delaunay triangulation of the
@@ -699,10 +711,17 @@ def height_above_ground(cloud: PointCloud, method: str = "tin", k: int = 10, pow
     With ``cell_m`` > 0 the ground points are first reduced to the lowest per
     ``cell_m`` square cell (0.5 m makes the TIN of a 20 pts/m2 tile about four
     times cheaper; ground points then get heights of a few cm instead of 0).
+    ``tin_radius_m``: triangles whose circumradius exceeds it count as outside
+    the TIN (IDW there).  Whether a Delaunay triangle exists depends only on
+    the points in its circumcircle, so with it a point's height depends only on
+    ground points within ``2 x tin_radius_m``: what makes heights the same in any
+    tiling with a buffer of that width (the long thin triangles along a tile's
+    outline, which join points far apart, are the ones left out; Sylva, not in
+    a paper).  None: every triangle.
     Raises :class:`EmptyInputError` naming the file when there is no ground point.
     """
     loc = cloud.local_xyz()
-    return loc[:, 2] - _ground_elevation(cloud, loc, loc, method, k, power, ground, cell_m)
+    return loc[:, 2] - _ground_elevation(cloud, loc, loc, method, k, power, ground, cell_m, tin_radius_m)
 
 
 def is_normalized(cloud: PointCloud, tolerance_m: float = 0.5) -> bool:
@@ -729,13 +748,15 @@ def is_normalized(cloud: PointCloud, tolerance_m: float = 0.5) -> bool:
 
 
 def normalize(cloud: PointCloud, method: str = "tin", classify: Optional[GroundMethod] = None,
-              k: int = 10, power: float = 2.0, cell_m: float = 0.0) -> PointCloud:
+              k: int = 10, power: float = 2.0, cell_m: float = 0.0,
+              tin_radius_m: Optional[float] = None) -> PointCloud:
     """A copy of ``cloud`` with attribute ``height`` (float64, metres above ground).
 
     An already normalised cloud (:func:`is_normalized`) gets ``height = z *
     vertical unit``.  Otherwise the ground is the class-2 points; when there
     are none and ``classify`` is a ground method (e.g. ``SMRF()``), the ground
     is classified first and those points get class 2 in the returned copy.
+    ``cell_m``, ``tin_radius_m``: see :func:`height_above_ground`.
     """
     if len(cloud) == 0:
         raise EmptyInputError(f"{cloud.name}: no points to normalise")
@@ -749,7 +770,8 @@ def normalize(cloud: PointCloud, method: str = "tin", classify: Optional[GroundM
         cls = np.ones(len(cloud), dtype=np.uint8) if cls is None else np.array(cls, copy=True)
         cls[mask] = GROUND_CLASS
         extra["classification"] = cls
-    height = height_above_ground(cloud, method=method, k=k, power=power, ground=mask, cell_m=cell_m)
+    height = height_above_ground(cloud, method=method, k=k, power=power, ground=mask, cell_m=cell_m,
+                                 tin_radius_m=tin_radius_m)
     return cloud.with_attrs(height=height, **extra)
 
 

@@ -62,6 +62,34 @@ def test_points_outside_the_ground_hull_get_a_height():
     assert abs(got[n] - (10.0 + 0.25 * 5)) < 1.0 and abs(got[n + 1] - 10.0) < 1.5
 
 
+def test_tin_radius_makes_heights_independent_of_the_tiling():
+    """With tin_radius_m = R a point's height depends only on the ground within 2R: the core of a
+    tile at the outer edge of the data, read with a 2R buffer, gets the heights the whole cloud
+    gives; without it the long triangles along the outline of the data differ."""
+    rng = np.random.default_rng(3)
+    g = rng.uniform(0.0, 200.0, (6000, 2))
+    gz = 10.0 * np.sin(g[:, 0] / 23.0) + 6.0 * np.cos(g[:, 1] / 17.0)
+    q = rng.uniform([150.0, 60.0], [200.0, 110.0], (4000, 2))      # a core on the data's edge x = 200
+    xyz = np.vstack([np.column_stack([g, gz]), np.column_stack([q, np.full(len(q), 30.0)])]) + [400_000, 4_000_000, 0]
+    cls = np.r_[np.full(len(g), 2, np.uint8), np.ones(len(q), np.uint8)]
+    whole = PointCloud(xyz, {"classification": cls}, crs=UTM, source="whole.laz")
+    r = 5.0
+    loc = xyz[:, :2] - [400_000, 4_000_000]
+    box = (loc[:, 0] >= 150.0 - 2 * r) & (loc[:, 1] >= 60.0 - 2 * r) & (loc[:, 1] <= 110.0 + 2 * r)
+    tile = whole.subset(box)
+    core = slice(len(g), None)
+    in_tile = np.flatnonzero(box) >= len(g)
+    for radius, same in ((r, True), (None, False)):
+        a = height_above_ground(whole, tin_radius_m=radius)[core]
+        b = height_above_ground(tile, tin_radius_m=radius)[in_tile]
+        assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
+        assert (np.abs(a - b).max() < 1e-9) == same, radius
+    # inside the data the radius changes nothing: the triangles there are small
+    inner = (loc[core][:, 0] < 190.0)
+    full, limited = height_above_ground(whole)[core], height_above_ground(whole, tin_radius_m=r)[core]
+    assert np.abs(full - limited)[inner].max() < 1e-9
+
+
 def test_no_ground_points_names_the_file():
     cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (50, 3)),
                        {"classification": np.ones(50, np.uint8)}, source="/data/tile_17.laz")
