@@ -21,6 +21,19 @@ def _umask() -> int:
     return mask
 
 
+def temporary_beside(path: Path) -> Path:
+    """A new empty temporary file in ``path``'s folder, named after it (for :func:`move_into_place`)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=str(path.parent))
+    os.close(fd)
+    return Path(tmp)
+
+
+def move_into_place(tmp: Path, path: Path) -> None:
+    """Give the complete temporary file ``tmp`` the usual permissions and move it to ``path``."""
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)
+
+
 @contextmanager
 def atomic_path(path):
     """``with atomic_path(out) as tmp:`` write ``tmp`` (a Path); it becomes ``out`` on success."""
@@ -29,13 +42,10 @@ def atomic_path(path):
         raise InputError(f"{path}: the output folder {path.parent} does not exist")
     if path.is_dir():
         raise InputError(f"{path}: is a folder, not a file name")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=str(path.parent))
-    os.close(fd)
-    tmp = Path(tmp)
+    tmp = temporary_beside(path)
     try:
         yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        move_into_place(tmp, path)
     except BaseException:
         if tmp.exists():
             tmp.unlink()

@@ -43,7 +43,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .atomic import _umask, atomic_path, atomic_write_bytes
+from .atomic import atomic_path, atomic_write_bytes, move_into_place, temporary_beside
 from .errors import Cancelled, InputError, SylvaError
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile, tree_ids
 from .progress import CancelCheck, Progress, check, report
@@ -477,12 +477,8 @@ class _OrderedMerge:
     """
 
     def __init__(self, path: Path, order: Sequence[str]):
-        import tempfile
-
         self.path = Path(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=str(self.path.parent))
-        os.close(fd)
-        self.tmp = Path(tmp)
+        self.tmp = temporary_beside(self.path)
         self.merge = GpkgMerge(self.tmp)
         self.order = list(order)
         self.next = 0
@@ -525,8 +521,7 @@ class _OrderedMerge:
         if self.merge.parts == 0:
             self.tmp.unlink()
             return None
-        os.chmod(self.tmp, 0o666 & ~_umask())
-        os.replace(self.tmp, self.path)
+        move_into_place(self.tmp, self.path)
         return self.path
 
 

@@ -382,14 +382,7 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
     seeds = [0] * ntree if seeds is None else list(seeds)
     radii = [None] * ntree if radii is None else list(radii)
     branch_sets = [None] * ntree if branch_sets is None else list(branch_sets)
-    needles = isinstance(method, NeedleClusters)
-    per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
-    length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
-    width_m = method.cluster_width_m if needles else method.leaf_width_m
-    shape = _shape_name(method.shape)
-    if width_m is None:
-        width_m = length_m * leaf_aspect(shape)
-    ksegs = int(method.tip_segments)
+    needles, per_tip, length_m, width_m, shape, ksegs = _leaf_sizes(method)
     if per_tip < 0 or ksegs < 1 or not (length_m > 0) or not (width_m > 0):
         raise InputError("leaves: need leaves_per_tip >= 0, tip_segments >= 1 and positive leaf sizes "
                          f"(got {per_tip}, {ksegs}, {length_m} m, {width_m} m)")
@@ -411,6 +404,19 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
                         method, seeds)
 
 
+def _leaf_sizes(method: Union[LeafCards, NeedleClusters]):
+    """(needles?, leaves or clusters per tip, length m, width m, shape name, tip segments) of ``method``;
+    the width defaults to the length times the shape's aspect ratio."""
+    needles = isinstance(method, NeedleClusters)
+    per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
+    length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
+    width_m = method.cluster_width_m if needles else method.leaf_width_m
+    shape = _shape_name(method.shape)
+    if width_m is None:
+        width_m = length_m * leaf_aspect(shape)
+    return needles, per_tip, length_m, width_m, shape, int(method.tip_segments)
+
+
 def _grow_leaves(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip_tree: np.ndarray,
                  node_start: np.ndarray, method: Union[LeafCards, NeedleClusters], seeds) -> list:
     """The leaves of :func:`grow_leaves_batch` from the trees' tip sections, one vectorised pass for all tips.
@@ -420,14 +426,7 @@ def _grow_leaves(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip
     each, ``node_start`` (n_trees,) the index of each tree's first node, ``seeds`` one per tree.
     """
     ntree = len(seeds)
-    needles = isinstance(method, NeedleClusters)
-    per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
-    length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
-    width_m = method.cluster_width_m if needles else method.leaf_width_m
-    shape = _shape_name(method.shape)
-    if width_m is None:
-        width_m = length_m * leaf_aspect(shape)
-    ksegs = int(method.tip_segments)
+    needles, per_tip, length_m, width_m, shape, ksegs = _leaf_sizes(method)
     base_az, node_rank = phyllotaxis_azimuths(method.pattern, per_tip)
     pts = nodes[sect_all]                                        # (t, K+1, 3)
     seglen = _norm3(pts[:, 1:] - pts[:, :-1])                    # (t, K)

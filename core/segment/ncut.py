@@ -1110,7 +1110,6 @@ def _clean(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
       unconnected) join the nearest labelled voxel within ``attach_m`` (3-D)
       when that tree's top is high enough; farther ones (isolated noise) stay 0.
     """
-    m = graph.n
     a, b = graph.edges[:, 0], graph.edges[:, 1]
     w = graph.weights
     z = graph.xyz[:, 2]
