@@ -16,7 +16,7 @@ from typing import List, Optional
 
 from .algorithms import all_algorithms, get
 from .algorithms import spec as S
-from .core.errors import InputError, SylvaError
+from .core.errors import InputError, SylvaError, disk_error
 
 
 class CliFeedback(S.Feedback):
@@ -83,16 +83,24 @@ def _help(p: S.Param) -> str:
     return text + (" (optional)" if p.optional else " (required)")
 
 
-def convert(alg: S.Algorithm, raw: dict) -> dict:
-    """Turn command-line strings into the typed values ``run`` expects (defaults filled in)."""
+def convert(alg: S.Algorithm, raw: dict, scratch: Optional[list] = None) -> dict:
+    """Turn command-line strings into the typed values ``run`` expects (defaults filled in).
+
+    A required output left out goes to a temporary folder (made once, appended to
+    ``scratch``: :func:`main` removes it when the command ends, as qgis_process does
+    with TEMPORARY_OUTPUT).
+    """
     args = {}
+    scratch = [] if scratch is None else scratch
     for p in alg.params:
         value = raw.get(p.name)
         if value is None:
             if p.is_output and p.optional:
                 value = None  # an optional output left out is not written
             elif p.is_output:
-                value = str(Path(tempfile.mkdtemp(prefix="sylva-")) / f"{p.name.lower()}{p.default_extension()}")
+                if not scratch:
+                    scratch.append(tempfile.mkdtemp(prefix="sylva-"))
+                value = str(Path(scratch[0]) / f"{p.name.lower()}{p.default_extension()}")
             elif p.default is None and not p.optional:
                 raise InputError(f"{alg.id}: parameter --{p.name} ({p.description}) is required")
             else:
@@ -149,38 +157,102 @@ def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
         if not args.get(name):
             continue
         path = Path(args[name])
-        if path.suffix.lower() != ".gpkg":
+        if path.suffix.lower() != ".gpkg":  # check_paths refused it before the run already
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
-        write_gpkg(path, [table])
+        try:
+            write_gpkg(path, [table])
+        except OSError as err:
+            raise disk_error(path, err) from None
         paths[name] = str(path)
     return paths
 
 
+class _Terminated(BaseException):
+    """SIGTERM (or SIGHUP) arrived: unwinds like Ctrl-C, so every temporary file is removed."""
+
+
+def _on_signal(signum, frame):
+    raise _Terminated(signum)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0].startswith("sylva:"):
-        argv[0] = argv[0].split(":", 1)[1]
-    parser = _parser()
-    ns = parser.parse_args(argv)
-    if not ns.algorithm:
-        parser.print_help()
-        return 2
-    alg = get(ns.algorithm)
-    feedback = CliFeedback(ns.quiet)
+    """Run one algorithm; every SylvaError (and Ctrl-C, SIGTERM, a full disk) is one line on stderr.
+
+    Exit codes: 0 done, 1 error, 2 usage, 130 cancelled (Ctrl-C), 143 terminated (SIGTERM).
+    """
+    import signal
+
+    name = "sylva"
+    scratch: list = []
+    previous = {}
     try:
-        args = convert(alg, vars(ns))
+        for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+            if sig is not None:
+                try:
+                    previous[sig] = signal.signal(sig, _on_signal)
+                except (ValueError, OSError):  # not the main thread
+                    pass
+        argv = list(sys.argv[1:] if argv is None else argv)
+        if argv and argv[0].startswith("sylva:"):
+            argv[0] = argv[0].split(":", 1)[1]
+        parser = _parser()
+        ns = parser.parse_args(argv)
+        if not ns.algorithm:
+            parser.print_help()
+            return 2
+        alg = get(ns.algorithm)
+        name = f"sylva {alg.id}"
+        return _run(alg, ns, scratch)
+    except KeyboardInterrupt:
+        print(f"\n{name}: cancelled", file=sys.stderr)
+        return 130
+    except _Terminated:
+        print(f"\n{name}: terminated", file=sys.stderr)
+        return 143
+    except SylvaError as exc:
+        print(f"\n{name}: error: {_one_line(exc)}", file=sys.stderr)
+        return 1
+    finally:
+        import shutil
+
+        for folder in scratch:
+            shutil.rmtree(folder, ignore_errors=True)
+        for sig, handler in previous.items():
+            try:
+                signal.signal(sig, handler)
+            except (ValueError, OSError, TypeError):
+                pass
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _run(alg: S.Algorithm, ns, scratch: list) -> int:
+    from .algorithms.common import OutputGuard, check_paths
+
+    feedback = CliFeedback(ns.quiet)
+    raw = vars(ns)
+    args = convert(alg, raw, scratch)
+    check_paths(alg, args, raw=raw)
+    guard = OutputGuard(alg, args)
+    try:
         result = alg.run(args, feedback)
         paths = write_outputs(alg, args, result)
-    except KeyboardInterrupt:
-        print("\nsylva: cancelled", file=sys.stderr)
-        return 130
-    except SylvaError as exc:
-        print(f"\nsylva {alg.id}: error: {exc}", file=sys.stderr)
-        return 1
-    for name, path in paths.items():
-        print(f"{name}: {path}")
-    for name, value in result.values.items():
-        print(f"{name}: {value}")
+    except OSError as err:
+        guard.rollback()
+        raise disk_error(err.filename or "output", err) from None
+    except BaseException:
+        guard.rollback()
+        raise
+    kept = {str(Path(f)) for f in scratch}
+    for key, path in paths.items():
+        if any(str(path).startswith(k) for k in kept):
+            print(f"{key}: not kept (a temporary file; give --{key}=PATH to keep it)")
+        else:
+            print(f"{key}: {path}")
+    for key, value in result.values.items():
+        print(f"{key}: {value}")
     return 0
 
 
