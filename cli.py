@@ -233,8 +233,9 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
 
     feedback = CliFeedback(ns.quiet)
     raw = vars(ns)
+    check_paths(alg, raw, raw=raw)       # before reading anything: the paths as given
     args = convert(alg, raw, scratch)
-    check_paths(alg, args, raw=raw)
+    check_paths(alg, args, raw=raw)       # again with the temporary outputs filled in
     guard = OutputGuard(alg, args)
     try:
         result = alg.run(args, feedback)

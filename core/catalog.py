@@ -331,7 +331,7 @@ def _terminate(pool) -> None:
 SCHEDULER_SCHEMES = ("tcp://", "tls://")
 
 
-def connect_scheduler(address: str, timeout_s: float = 20.0):
+def connect_scheduler(address: str, timeout_s: Optional[float] = None):
     """A dask.distributed Client for ``address`` (tcp:// or tls:// only), or one line why not.
 
     A scheduler is trusted code execution: dask sends tasks and results pickled both ways, so a
@@ -344,6 +344,11 @@ def connect_scheduler(address: str, timeout_s: float = 20.0):
         from distributed import Client
     except ImportError:
         raise InputError("the SCHEDULER option needs dask.distributed: pip install 'dask[distributed]'") from None
+    if timeout_s is None:   # SYLVA_SCHEDULER_TIMEOUT_S: seconds to wait for the scheduler (default 20)
+        try:
+            timeout_s = float(os.environ.get("SYLVA_SCHEDULER_TIMEOUT_S", "20"))
+        except ValueError:
+            timeout_s = 20.0
     text = str(address).strip()
     if not text.lower().startswith(SCHEDULER_SCHEMES) or len(text) <= 6:
         raise InputError(f"SCHEDULER={text!r}: give the scheduler's address with its scheme, "

@@ -16,8 +16,6 @@ data value goes into GDAL's ``GDAL_NODATA`` tag (42113).
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Tuple
@@ -197,15 +195,9 @@ def _pam_xml(wkt: str) -> str:
 
 
 def _atomic_write_bytes(path: Path, payload: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from .atomic import atomic_write_bytes   # the umask's permissions, not mkstemp's 0600
+
+    atomic_write_bytes(path, payload)
 
 
 def write_geotiff(path, raster: Raster, compress: bool = True) -> Path:
@@ -234,19 +226,14 @@ def write_geotiff(path, raster: Raster, compress: bool = True) -> Path:
         _DEFLATE = _deflate_available()
     compression = "zlib" if (compress and _DEFLATE) else None
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    os.close(fd)
-    try:
+    from .atomic import atomic_path   # the umask's permissions (0666 minus it), not mkstemp's 0600
+
+    with atomic_path(path) as tmp:
         tifffile.imwrite(
-            tmp, np.ascontiguousarray(raster.data, dtype=np.float32),
+            str(tmp), np.ascontiguousarray(raster.data, dtype=np.float32),
             compression=compression, photometric="minisblack",
             metadata=None, extratags=extratags,
         )
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     aux = Path(str(path) + ".aux.xml")
     horizontal = _horizontal_crs(raster.crs)
     if horizontal is not None and epsg is None:

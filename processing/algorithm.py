@@ -225,16 +225,47 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         lacking = deps.missing()
         if lacking:
             raise QgsProcessingException(deps.install_hint(lacking))
-        args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
+        from ..algorithms.common import OutputGuard, check_paths
+        from ..core.errors import disk_error
+
+        guard = None
         try:
+            args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
+            # outputs checked before any computation, as the CLI does (one shared check)
+            sinks = {p.name: self._sink_path(parameters, p.name, context)
+                     for p in self.spec.outputs if p.kind == S.VECTOR_OUT}
+            raw = {p.name: self.parameterAsString(parameters, p.name, context)
+                   for p in self.spec.inputs if p.kind == S.VECTOR}
+            check_paths(self.spec, args, raw=raw, outputs=sinks, vector_suffixes=())
+            guard = OutputGuard(self.spec, args)
             result = self.spec.run(args, QgisFeedback(feedback))
         except SylvaError as exc:
-            raise QgsProcessingException(str(exc)) from None
+            if guard is not None:
+                guard.rollback()
+            raise QgsProcessingException(" ".join(str(exc).split())) from None
+        except OSError as exc:   # a full disk, a read-only folder: one line, nothing half-written
+            if guard is not None:
+                guard.rollback()
+            raise QgsProcessingException(str(disk_error(exc.filename or "output", exc))) from None
+        except BaseException:
+            if guard is not None:
+                guard.rollback()
+            raise
         outputs = dict(result.files)
         for name, table in result.vectors.items():
             outputs[name] = self._write_sink(parameters, name, table, context, feedback)
         outputs.update(result.values)
         return outputs
+
+    def _sink_path(self, parameters, name, context):
+        """The file a feature sink will write (None for memory layers and temporary outputs)."""
+        try:
+            text = self.parameterAsOutputLayer(parameters, name, context) or ""
+        except Exception:  # noqa: BLE001 — an unusual destination: QGIS checks it itself
+            return None
+        if not text or text.startswith(("memory:", "ogr:", "postgres:", "TEMPORARY_OUTPUT")) or "://" in text:
+            return None
+        return text.split("|", 1)[0]
 
     def _write_sink(self, parameters, name, table, context, feedback):
         fields = QgsFields()
