@@ -242,7 +242,7 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
         paths = write_outputs(alg, args, result)
     except OSError as err:
         guard.rollback()
-        raise disk_error(err.filename or "output", err) from None
+        raise disk_error(err.filename or guard.describe(), err) from None
     except BaseException:
         guard.rollback()
         raise

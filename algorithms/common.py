@@ -288,6 +288,10 @@ class OutputGuard:
             return None
         return (st.st_ino, st.st_mtime_ns, st.st_size)
 
+    def describe(self) -> str:
+        """The output paths, for a message that has no file name of its own."""
+        return ", ".join(str(path) for path, _, _, _ in self.entries) or "the outputs"
+
     def rollback(self) -> None:
         import shutil
 

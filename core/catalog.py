@@ -323,6 +323,9 @@ def _terminate(pool) -> None:
     for proc in processes.values():
         try:
             proc.join(5)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5)
         except Exception:  # noqa: BLE001
             pass
 

@@ -246,7 +246,8 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         except OSError as exc:   # a full disk, a read-only folder: one line, nothing half-written
             if guard is not None:
                 guard.rollback()
-            raise QgsProcessingException(str(disk_error(exc.filename or "output", exc))) from None
+            where = exc.filename or (guard.describe() if guard is not None else "output")
+            raise QgsProcessingException(str(disk_error(where, exc))) from None
         except BaseException:
             if guard is not None:
                 guard.rollback()

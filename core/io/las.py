@@ -916,7 +916,9 @@ def write_las(path, cloud: PointCloud, extra: Optional[dict] = None, *,
         if isinstance(err, (SylvaError, KeyboardInterrupt, SystemExit)):
             raise
         if isinstance(err, OSError):
-            raise InputError(f"{where}: cannot write the file ({err.strerror or err})") from None
+            from ..errors import disk_error
+
+            raise disk_error(where, err) from None
         if isinstance(err, laspy.errors.LaspyException):
             raise InputError(f"{where}: cannot write the file ({err})") from None
         raise
