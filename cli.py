@@ -171,8 +171,17 @@ class _Terminated(BaseException):
     """SIGTERM (or SIGHUP) arrived: unwinds like Ctrl-C, so every temporary file is removed."""
 
 
+_SIGNALLED = {"signal": None}   # the last SIGINT/SIGTERM main() received
+
+
 def _on_signal(signum, frame):
+    _SIGNALLED["signal"] = signum
     raise _Terminated(signum)
+
+
+def _on_interrupt(signum, frame):
+    _SIGNALLED["signal"] = signum
+    raise KeyboardInterrupt
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -185,13 +194,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     name = "sylva"
     scratch: list = []
     previous = {}
+    _SIGNALLED["signal"] = None
     try:
-        for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        for sig, handler in ((signal.SIGTERM, _on_signal), (getattr(signal, "SIGHUP", None), _on_signal),
+                             (signal.SIGINT, _on_interrupt)):
             if sig is not None:
                 try:
-                    previous[sig] = signal.signal(sig, _on_signal)
+                    previous[sig] = signal.signal(sig, handler)
                 except (ValueError, OSError):  # not the main thread
                     pass
+        # numpy first, on its own: a Ctrl-C while it loads is then its (silent) ImportError, caught
+        # below, and not a C extension built on it printing the failed import (numpy's import_array)
+        import numpy  # noqa: F401
+
         argv = list(sys.argv[1:] if argv is None else argv)
         if argv and argv[0].startswith("sylva:"):
             argv[0] = argv[0].split(":", 1)[1]
@@ -212,6 +227,16 @@ def main(argv: Optional[List[str]] = None) -> int:
     except SylvaError as exc:
         print(f"\n{name}: error: {_one_line(exc)}", file=sys.stderr)
         return 1
+    except Exception:
+        # a library turned the Ctrl-C or SIGTERM that interrupted its import into an ImportError
+        # (numpy does): the user cancelled, this is no bug
+        if _SIGNALLED["signal"] == signal.SIGINT:
+            print(f"\n{name}: cancelled", file=sys.stderr)
+            return 130
+        if _SIGNALLED["signal"] is not None:
+            print(f"\n{name}: terminated", file=sys.stderr)
+            return 143
+        raise
     finally:
         import shutil
 

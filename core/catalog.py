@@ -884,6 +884,9 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
                 skipped.append(job.name)
                 merger.ready(job.name, part_paths(out, job.name)["gpkg"])
             else:
+                # an earlier run's manifest must not vouch for files this run is about to rewrite:
+                # interrupted half-way, the tile would otherwise be "complete" with mixed files
+                part_paths(out, job.name)["manifest"].unlink(missing_ok=True)
                 todo.append(job)
         total = max(len(jobs), 1)
         state = {"done": len(skipped)}
