@@ -277,8 +277,20 @@ class OutputGuard:
             if str(path).startswith(("memory:", "TEMPORARY_OUTPUT")):
                 continue
             folder = p.kind == S.FOLDER_OUT
-            self.entries.append((path, folder, self._stat(path),
-                                 {c.name: self._stat(c) for c in path.iterdir()} if folder and path.is_dir() else None))
+            if folder:
+                children = {c.name: self._stat(c) for c in path.iterdir()} if path.is_dir() else None
+            else:   # its side files (.prj, .origin.json, .mtl, textures) are named after it
+                children = {c.name: self._stat(c) for c in self._siblings(path)}
+            self.entries.append((path, folder, self._stat(path), children))
+
+    @staticmethod
+    def _siblings(path: Path) -> list:
+        """Files beside ``path`` named after it (``stem.*``, ``stem_*`` with spaces as ``_``), but not itself."""
+        if not path.parent.is_dir():
+            return []
+        stems = {path.stem, "_".join(path.stem.split())}
+        return [c for c in path.parent.iterdir() if c != path and c.is_file()
+                and any(c.name.startswith((f"{s}.", f"{s}_")) for s in stems)]
 
     @staticmethod
     def _stat(path: Path):
@@ -302,6 +314,9 @@ class OutputGuard:
                         path.unlink()
                     for side in path.parent.glob(f".{path.name}.*.part"):
                         side.unlink(missing_ok=True)
+                    for side in self._siblings(path):
+                        if side.name not in children or children[side.name] != self._stat(side):
+                            side.unlink(missing_ok=True)
                 elif before is None:
                     shutil.rmtree(path, ignore_errors=True)
                 elif path.is_dir():
