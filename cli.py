@@ -78,6 +78,10 @@ def _help(p: S.Param) -> str:
     if p.is_output:
         return text + (" (optional: not written when left out)" if p.optional
                        else " (written to a temporary folder when left out)")
+    if p.kind in (S.NUMBER, S.INTEGER):
+        text += f" Range: {p.range_text()}."
+    if p.kind == S.ENUM and p.labels:
+        text += " " + "; ".join(f"{o}: {lab}" for o, lab in zip(p.options, p.labels)) + "."
     if p.default is not None:
         return text + f" (default: {p.default})"
     return text + (" (optional)" if p.optional else " (required)")
@@ -116,7 +120,9 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
         if p.kind == S.NUMBER:
             v = float(value)
         elif p.kind == S.INTEGER:
-            v = int(value)
+            v = float(value)
+            if v.is_integer():
+                v = int(v)
         elif p.kind == S.BOOLEAN:
             low = value.strip().lower()
             if low not in ("true", "false", "1", "0", "yes", "no"):
@@ -125,15 +131,14 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
         elif p.kind == S.VECTOR:
             return _vector(alg, p, value)
         elif p.kind == S.ENUM:
-            if value in p.options:
-                return value
-            return p.options[int(value)]  # qgis_process passes the option's index
+            return p.option(value)  # the option's id, its label, or its index (qgis_process passes indices)
         else:
             return value
-    except (ValueError, IndexError):
+    except (ValueError, IndexError, OverflowError):
         raise InputError(f"{alg.id}: --{p.name}={value!r} is not a valid {_metavar(p)}") from None
-    if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
-        raise InputError(f"{alg.id}: --{p.name}={value} is outside [{p.minimum}, {p.maximum}]")
+    why = p.problem(v)
+    if why:
+        raise InputError(f"{alg.id}: --{p.name} ({p.description}): {why}")
     return v
 
 
@@ -160,7 +165,7 @@ def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
         if path.suffix.lower() != ".gpkg":  # check_paths refused it before the run already
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
         try:
-            write_gpkg(path, [table])
+            write_gpkg(path, [_rounded(table)])
         except OSError as err:
             raise disk_error(path, err) from None
         paths[name] = str(path)
@@ -173,6 +178,16 @@ class _Terminated(BaseException):
 
 def _on_signal(signum, frame):
     raise _Terminated(signum)
+
+
+def _rounded(table):
+    """The table with its real columns rounded for display (spec.display_round), as the QGIS sinks write them."""
+    from dataclasses import replace
+
+    from .core.table import field_type
+
+    columns = {name: S.display_round(v) if field_type(v) == "real" else v for name, v in table.columns.items()}
+    return replace(table, columns=columns)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
