@@ -154,21 +154,46 @@ def _vector(alg: S.Algorithm, p: S.Param, value: str):
 
 
 def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
-    """Write vector tables to GeoPackages; return every output's path."""
-    from .core.io.gpkg import write_gpkg
+    """Write vector tables to GeoPackages (with their QGIS styles); return every output's path.
+
+    Outputs naming the same file become layers of that one GeoPackage
+    (``--TREES=all.gpkg --CROWNS=all.gpkg``); ``file.gpkg|layername=NAME``
+    names the layer and keeps the file's other layers, as QGIS does.
+    """
+    from dataclasses import replace
+
+    from .core.io.gpkg import split_source, write_gpkg
 
     paths = dict(result.files)
+    files: dict = {}                                   # resolved path -> (path, [(param, table, style)], update)
     for name, table in result.vectors.items():
         if not args.get(name):
             continue
-        path = Path(args[name])
-        if path.suffix.lower() != ".gpkg":  # check_paths refused it before the run already
+        file, layer = split_source(args[name])
+        path = Path(file)
+        if path.suffix.lower() != ".gpkg":
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
+        if layer is not None:
+            if not layer:
+                raise InputError(f"--{name}={args[name]}: the layer name after layername= is empty")
+            table = replace(table, name=layer)
+        entry = files.setdefault(path.resolve(), (path, [], [False]))
+        entry[1].append((name, table, alg.param(name).style))
+        entry[2][0] = entry[2][0] or layer is not None
+    for path, items, update in files.values():
+        seen = {}
+        for name, table, _ in items:
+            other = seen.setdefault(table.name.lower(), name)
+            if other != name:
+                raise InputError(f"--{other} and --{name} both write layer {table.name!r} of {path}; "
+                                 f"name them apart with {path}|layername=NAME")
         try:
-            write_gpkg(path, [_rounded(table)])
+            write_gpkg(path, [_rounded(t) for _, t, _ in items], styles={t.name: s for _, t, s in items if s},
+                       update=update[0])
         except OSError as err:
             raise disk_error(path, err) from None
-        paths[name] = str(path)
+        for name, table, _ in items:
+            paths[name] = f"{path}|layername={table.name}" if len(items) > 1 or update[0] else str(path)
     return paths
 
 
