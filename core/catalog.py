@@ -34,6 +34,7 @@ import hashlib
 import json
 import os
 import shutil
+import sqlite3
 import sys
 import time
 from dataclasses import dataclass, replace
