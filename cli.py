@@ -78,6 +78,10 @@ def _help(p: S.Param) -> str:
     if p.is_output:
         return text + (" (optional: not written when left out)" if p.optional
                        else " (written to a temporary folder when left out)")
+    if p.kind in (S.NUMBER, S.INTEGER):
+        text += f" Range: {p.range_text()}."
+    if p.kind == S.ENUM and p.labels:
+        text += " " + "; ".join(f"{o}: {lab}" for o, lab in zip(p.options, p.labels)) + "."
     if p.default is not None:
         return text + f" (default: {p.default})"
     return text + (" (optional)" if p.optional else " (required)")
@@ -116,7 +120,9 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
         if p.kind == S.NUMBER:
             v = float(value)
         elif p.kind == S.INTEGER:
-            v = int(value)
+            v = float(value)
+            if v.is_integer():
+                v = int(v)
         elif p.kind == S.BOOLEAN:
             low = value.strip().lower()
             if low not in ("true", "false", "1", "0", "yes", "no"):
@@ -125,15 +131,14 @@ def _typed(alg: S.Algorithm, p: S.Param, value: str):
         elif p.kind == S.VECTOR:
             return _vector(alg, p, value)
         elif p.kind == S.ENUM:
-            if value in p.options:
-                return value
-            return p.options[int(value)]  # qgis_process passes the option's index
+            return p.option(value)  # the option's id, its label, or its index (qgis_process passes indices)
         else:
             return value
-    except (ValueError, IndexError):
+    except (ValueError, IndexError, OverflowError):
         raise InputError(f"{alg.id}: --{p.name}={value!r} is not a valid {_metavar(p)}") from None
-    if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
-        raise InputError(f"{alg.id}: --{p.name}={value} is outside [{p.minimum}, {p.maximum}]")
+    why = p.problem(v)
+    if why:
+        raise InputError(f"{alg.id}: --{p.name} ({p.description}): {why}")
     return v
 
 
@@ -149,21 +154,46 @@ def _vector(alg: S.Algorithm, p: S.Param, value: str):
 
 
 def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
-    """Write vector tables to GeoPackages; return every output's path."""
-    from .core.io.gpkg import write_gpkg
+    """Write vector tables to GeoPackages (with their QGIS styles); return every output's path.
+
+    Outputs naming the same file become layers of that one GeoPackage
+    (``--TREES=all.gpkg --CROWNS=all.gpkg``); ``file.gpkg|layername=NAME``
+    names the layer and keeps the file's other layers, as QGIS does.
+    """
+    from dataclasses import replace
+
+    from .core.io.gpkg import split_source, write_gpkg
 
     paths = dict(result.files)
+    files: dict = {}                                   # resolved path -> (path, [(param, table, style)], update)
     for name, table in result.vectors.items():
         if not args.get(name):
             continue
-        path = Path(args[name])
-        if path.suffix.lower() != ".gpkg":  # check_paths refused it before the run already
+        file, layer = split_source(args[name])
+        path = Path(file)
+        if path.suffix.lower() != ".gpkg":
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
+        if layer is not None:
+            if not layer:
+                raise InputError(f"--{name}={args[name]}: the layer name after layername= is empty")
+            table = replace(table, name=layer)
+        entry = files.setdefault(path.resolve(), (path, [], [False]))
+        entry[1].append((name, table, alg.param(name).style))
+        entry[2][0] = entry[2][0] or layer is not None
+    for path, items, update in files.values():
+        seen = {}
+        for name, table, _ in items:
+            other = seen.setdefault(table.name.lower(), name)
+            if other != name:
+                raise InputError(f"--{other} and --{name} both write layer {table.name!r} of {path}; "
+                                 f"name them apart with {path}|layername=NAME")
         try:
-            write_gpkg(path, [table])
+            write_gpkg(path, [_rounded(t) for _, t, _ in items], styles={t.name: s for _, t, s in items if s},
+                       update=update[0])
         except OSError as err:
             raise disk_error(path, err) from None
-        paths[name] = str(path)
+        for name, table, _ in items:
+            paths[name] = f"{path}|layername={table.name}" if len(items) > 1 or update[0] else str(path)
     return paths
 
 
@@ -182,6 +212,16 @@ def _on_signal(signum, frame):
 def _on_interrupt(signum, frame):
     _SIGNALLED["signal"] = signum
     raise KeyboardInterrupt
+
+
+def _rounded(table):
+    """The table with its real columns rounded for display (spec.display_round), as the QGIS sinks write them."""
+    from dataclasses import replace
+
+    from .core.table import field_type
+
+    columns = {name: S.display_round(v) if field_type(v) == "real" else v for name, v in table.columns.items()}
+    return replace(table, columns=columns)
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -5,28 +5,34 @@ import numpy as np
 
 from ..core.reconstruct.billboard import Billboard
 from .common import build_method, crs_override, input_cloud, load_segmented, method_params
-from .spec import FILE, FILE_OUT, FOLDER_OUT, RASTER, Algorithm, Feedback, Param, Result
+from .spec import FILE, FILE_OUT, FOLDER_OUT, NUMBER_RESULT, RASTER, Algorithm, Feedback, Param, Result
 
 BILLBOARD_PARAMS = method_params(Billboard, {
-    "pixel_m": ("Mask pixel (m)", "Pixel size of the shape masks: the scale factor s of Zhou et al. §VI-A, so "
+    "pixel_m": ("Mask pixel (m)", "Pixel size of the shape masks: the scale factor s of Zhou et al. 2013 §VI-A, so "
                                   "sizes come out in metres. Smaller finds thinner trunks, costs more time."),
     "close_m": ("Closing radius (m)", "Smallest radius of the morphological closing that joins the points into a "
-                                      "silhouette (§VI-A); the median point spacing is used when larger."),
-    "width_jump_m": ("Width jump (m)", "Growth of the width function f(y) that ends the trunk going up (the first "
-                                       "non-zero ∂f/∂y of §VI-A)."),
+                                      "silhouette (Zhou et al. 2013 §VI-A); the median point spacing is used when "
+                                      "larger."),
+    "width_jump_m": ("Trunk end: width jump (m)", "Growth of the width function f(y) that ends the trunk going up "
+                                                  "(the first non-zero ∂f/∂y of Zhou et al. 2013 §VI-A)."),
     "min_trunk_m": ("Shortest trunk (m)", "A trunk area shorter than this is no trunk: the tree gets the three "
-                                          "crown quads only (§VI-A, Fig. 5)."),
-    "ransac_tolerance_m": ("RANSAC tolerance (m)", "Largest distance of an edge point to a trunk edge line "
-                                                   "found by RANSAC (§VI-A)."),
-    "texture_px": ("Texture size (px)", "Texels along the tree's longest side; 64–128 keep a tree near the "
-                                        "paper's 40 kB (Table I)."),
-    "gmm_components": ("GMM clusters", "Clusters of the Gaussian mixture in HSV that removes wrong colours "
-                                       "(§VI-B); 0 keeps every colour."),
-    "block_px": ("Block size (px)", "Initial block size s of the texture completion (§VI-B, Algorithm 1)."),
+                                          "crown quads only (Zhou et al. 2013 §VI-A, Fig. 5)."),
+    "ransac_tolerance_m": ("Trunk edge tolerance (m)", "Largest distance of an edge point to a trunk edge line "
+                                                       "found by RANSAC (Zhou et al. 2013 §VI-A)."),
+    "texture_px": ("Texture size (pixels)", "Texels along the tree's longest side; 64–128 keep a tree near the "
+                                            "paper's 40 kB (Zhou et al. 2013, Table I)."),
+    "gmm_components": ("Colour clusters", "Clusters of the Gaussian mixture in HSV that removes wrong colours "
+                                          "(Zhou et al. 2013 §VI-B); 0 keeps every colour."),
+    "block_px": ("Texture completion block (pixels)", "Initial block size s of the texture completion (Zhou et "
+                                                      "al. 2013 §VI-B, Algorithm 1)."),
     "palette_colours": ("Palette colours", "Colours of the PNG palette of each tree's texture."),
     "seed": ("Random seed", "Seed of RANSAC and of the Gaussian mixture: same seed, same result."),
 }, advanced=("close_m", "width_jump_m", "ransac_tolerance_m", "gmm_components", "block_px", "palette_colours",
-             "seed"))
+             "seed"),
+   ranges={"pixel_m": (0.005, 1.0), "close_m": (0.005, 10.0), "width_jump_m": (0.0, 10.0),
+           "min_trunk_m": (0.0, 100.0), "ransac_tolerance_m": (0.001, 1.0), "texture_px": (8, 4096),
+           "gmm_components": (0, 16), "block_px": (1, 256), "palette_colours": (2, 256),
+           "seed": (0, 2 ** 31 - 1)})
 
 
 def point_colours(cloud, image_path, feedback: Feedback, camera_path=None):
@@ -154,6 +160,9 @@ BILLBOARDS = Algorithm(
               help="A 3D Tiles 1.1 tileset of the billboards (the tile needs a CRS with a datum)."),
     ),
     run=run,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Billboard trees written."),
+             Param("TRUNK_COUNT", NUMBER_RESULT, "Trees with a trunk", help="Trees with a single main trunk "
+                   "(six quads)."),),
 )
 
 ALGORITHMS = (BILLBOARDS,)

@@ -54,36 +54,46 @@ def require_existing(path: str) -> str:
     return path
 
 
-def method_params(cls, texts: dict, advanced: tuple = ()) -> tuple:
+def method_params(cls, texts: dict, advanced: tuple = (), ranges: dict = None, prefix: str = "") -> tuple:
     """Params for the fields of a method dataclass, named as the fields in upper case.
 
     ``texts`` maps a field name to (description, help); only those fields are
     exposed, in that order, with the dataclass's own default (one source of
-    defaults: the paper's, in the dataclass).
+    defaults: the paper's, in the dataclass). ``ranges`` maps every numeric
+    field to its (minimum, maximum): the values the dataclass accepts (within
+    sane limits), so the front ends refuse the others before the run.
+    ``prefix`` starts each label (e.g. "Normalised cut: "), so one method's
+    parameters read as a group in the dialog.
     """
     import dataclasses
 
     from .spec import BOOLEAN, INTEGER, NUMBER
 
+    ranges = ranges or {}
     defaults = {f.name: f.default for f in dataclasses.fields(cls)}
     params = []
     for field, (description, text) in texts.items():
         default = defaults[field]
         kind = BOOLEAN if isinstance(default, bool) else INTEGER if isinstance(default, int) else NUMBER
-        params.append(Param(field.upper(), kind, description, default=default,
-                            minimum=None if kind == BOOLEAN or field.endswith("_deg") else 0.0, help=text,
-                            advanced=field in advanced))
+        lo, hi = ranges.get(field, (None, None)) if kind != BOOLEAN else (None, None)
+        params.append(Param(field.upper(), kind, prefix + description, default=default,
+                            minimum=lo, maximum=hi, help=text, advanced=field in advanced))
     return tuple(params)
 
 
 def build_method(cls, args: dict, **fixed):
-    """An instance of ``cls`` from the upper-case args of its exposed fields (see method_params)."""
+    """An instance of ``cls`` from the upper-case args of its exposed fields (see method_params).
+
+    A combination the dataclass refuses (its ValueError) becomes an InputError: one line, no traceback."""
     import dataclasses
 
     values = {f.name: args[f.name.upper()] for f in dataclasses.fields(cls)
               if args.get(f.name.upper()) is not None}  # an optional value left empty keeps the default
     values.update(fixed)
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise InputError(f"parameters: {exc}") from None
 
 
 def drop_noise(cloud, feedback: Feedback):
@@ -276,6 +286,8 @@ class OutputGuard:
             path = Path(str(value).split("|", 1)[0])
             if str(path).startswith(("memory:", "TEMPORARY_OUTPUT")):
                 continue
+            if "|" in str(value) and path.exists():
+                continue   # a layer written into an existing GeoPackage: its other layers are not ours to remove
             folder = p.kind == S.FOLDER_OUT
             if folder:
                 children = {c.name: self._stat(c) for c in path.iterdir()} if path.is_dir() else None

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..core.progress import check, scaled
-from .spec import BOOLEAN, ENUM, FILE, FILE_OUT, FOLDER_OUT, POLYGON, VECTOR_OUT, Algorithm, Feedback, Param, Result
+from .spec import BOOLEAN, ENUM, FILE, FILE_OUT, FOLDER_OUT, NUMBER_RESULT, POLYGON, VECTOR_OUT, Algorithm, Feedback, Param, Result
 
 CITYGML_VERSIONS = ("2.0", "3.0")
 
@@ -83,6 +83,7 @@ EXPORT_MODELS = Algorithm(
         Param("LEAVES", BOOLEAN, "Include leaves", default=True,
               help="Leaf cards in the per-tree GLBs, the CityGML (lod2) and the OBJ; 3D Tiles always have them."),
         Param("VERSION", ENUM, "CityGML version", options=CITYGML_VERSIONS, default="2.0",
+              labels=("CityGML 2.0", "CityGML 3.0"),
               help="2.0: lod2Geometry (widest support); 3.0: lod2MultiSurface."),
         Param("IMPLICIT", BOOLEAN, "CityGML implicit geometry", default=False, advanced=True,
               help="Write lod2ImplicitRepresentation (a prototype in local metres, a reference point and a "
@@ -102,6 +103,7 @@ EXPORT_MODELS = Algorithm(
                    "n_triangles; shown by QGIS's 3D map view."),
     ),
     run=run,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Trees exported."),),
 )
 
 ALGORITHMS = (EXPORT_MODELS,)

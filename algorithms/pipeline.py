@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from .common import crs_override
-from .spec import BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, NUMBER, STRING, Algorithm, Feedback, Param, Result
+from .spec import (BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, LEAF_LABELS, NUMBER, NUMBER_RESULT, STRING,
+                   STRING_RESULT, Algorithm, Feedback, Param, Result)
 
 SEGMENTATION = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
 
@@ -79,10 +80,11 @@ PIPELINE = Algorithm(
               file_filter="Virtual point clouds (*.vpc);;LAS/LAZ (*.las *.laz);;All files (*)",
               help="A QGIS virtual point cloud (.vpc), one LAS/LAZ file, or a folder of LAS/LAZ tiles; "
                    "several separated by ';'."),
-        Param("BUFFER_M", NUMBER, "Buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
+        Param("BUFFER_M", NUMBER, "Neighbour buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
               help="Width of the ring of neighbouring points read around each tile; wider than the "
                    "widest crown."),
         Param("METHOD", ENUM, "Segmentation method", options=tuple(SEGMENTATION), default="ncut",
+              labels=("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)"),
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "
                    "canopy height model (Dalponte & Coomes 2016)."),
         Param("WINDOW_DIAMETER_M", NUMBER, "Tree-top window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
@@ -92,15 +94,16 @@ PIPELINE = Algorithm(
         Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,
               help="Model every tree (hybrid greedy skeleton / guided growth) and write GLB and 3D Tiles; "
                    "off: segmentation and measurements only (much faster)."),
-        Param("LOD", INTEGER, "Level of detail", default=0, minimum=0, maximum=2, advanced=True,
+        Param("LOD", INTEGER, "Level of detail (0–2)", default=0, minimum=0, maximum=2, advanced=True,
               help="0: light models; 1: 8-sided smoothed branches; 2: every twig."),
         Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
+              labels=LEAF_LABELS,
               advanced=True, help="auto: needles on conical crowns, leaf cards otherwise."),
         Param("BILLBOARDS", BOOLEAN, "Billboards as the far level of detail", default=False, advanced=True,
               help="Also build each tree's textured billboard (Zhou et al. 2013: six quads, textured from the "
                    "points' RGB when the tiles have colour) and draw it in the 3D Tiles tileset's far tile "
                    "instead of the coarse wood; about 0.07 s per tree."),
-        Param("WORKERS", INTEGER, "Parallel workers", default=1, minimum=1, maximum=256,
+        Param("WORKERS", INTEGER, "Parallel workers (processes)", default=1, minimum=1, maximum=256,
               help="Local processes working on tiles at once (each needs the memory of one tile and "
                    "its buffer)."),
         Param("SCHEDULER", STRING, "Dask scheduler address", optional=True, advanced=True,
@@ -116,6 +119,12 @@ PIPELINE = Algorithm(
               help="Receives forest.gpkg, tiles/, models/, parts/ and report.json/report.txt."),
     ),
     run=run,
+    results=(
+        Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Trees of the whole run."),
+        Param("TILE_COUNT", NUMBER_RESULT, "Number of tiles", help="Tiles of the run."),
+        Param("FAILED_TILES", NUMBER_RESULT, "Failed tiles", help="Tiles that failed (see report.txt)."),
+        Param("GEOPACKAGE", STRING_RESULT, "Forest GeoPackage", help="The path of forest.gpkg."),
+    ),
 )
 
 ALGORITHMS = (PIPELINE,)

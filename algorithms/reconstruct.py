@@ -9,29 +9,51 @@ from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
 from .common import build_method, crs_override, input_cloud, load_segmented, method_params
-from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LINE, NO_GEOMETRY, VECTOR_OUT, Algorithm, Feedback, Param,
-                   Result)
+from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LEAF_LABELS, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
+                   Algorithm, Feedback, Param, Result)
 
 METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed")
 
 GREEDY_PARAMS = method_params(GreedySkeleton, {
-    "voxel_m": ("Thinning voxel d_l (m)", "Greedy skeleton: voxel pitch of the thinning (Hu et al. §5.1, §6.2: 0.2 m)."),
-    "radius_m": ("Neighbourhood radius r_p (m)", "Greedy skeleton: fixed-radius search of the graph (§5.2, Algorithm 1)."),
-    "k": ("Nearest neighbours k", "Greedy skeleton: kNN links added where the radius finds too few (§5.2; Table 1: 10–30)."),
-    "theta_upper_deg": ("θu (°)", "Direction field: minimum angle of upper branches (§5.3, Eq. 5)."),
-    "theta_lower_deg": ("θl (°)", "Direction field: minimum angle of lower branches (§5.3, Eq. 5)."),
-    "k1": ("k1", "Direction field: change rate above the crown centre (Eq. 5)."),
-    "k2": ("k2", "Direction field: change rate below the crown centre (Eq. 5)."),
-    "alpha_max_deg": ("α max (°)", "Greedy skeleton: largest bend between a branch and its child (§5.4)."),
-    "beta_max_deg": ("β max (°)", "Greedy skeleton: largest deviation from the direction field (§5.4)."),
-    "phi_max_deg": ("φ max (°)", "Greedy skeleton: pruning angle between sibling branches (§5.4)."),
-}, advanced=("theta_upper_deg", "theta_lower_deg", "k1", "k2", "phi_max_deg"))
+    "voxel_m": ("thinning voxel (m)", "Voxel pitch of the thinning, d_l of Hu et al. 2017 (§5.1, §6.2: 0.2 m)."),
+    "radius_m": ("neighbourhood radius (m)", "Fixed-radius search of the point graph, r_p of Hu et al. 2017 "
+                 "(§5.2, Algorithm 1)."),
+    "k": ("nearest neighbours", "kNN links (k of Hu et al. 2017 §5.2; Table 1: 10–30) added where the radius "
+          "finds too few."),
+    "theta_upper_deg": ("upper branch angle (°)", "Direction field: minimum angle θ_u of upper branches (Hu et "
+                        "al. 2017 §5.3, Eq. 5)."),
+    "theta_lower_deg": ("lower branch angle (°)", "Direction field: minimum angle θ_l of lower branches (Hu et "
+                        "al. 2017 §5.3, Eq. 5)."),
+    "k1": ("angle change above crown centre", "Direction field: change rate k1 above the crown centre (Hu et "
+           "al. 2017, Eq. 5)."),
+    "k2": ("angle change below crown centre", "Direction field: change rate k2 below the crown centre (Hu et "
+           "al. 2017, Eq. 5)."),
+    "alpha_max_deg": ("largest bend to a child branch (°)", "α_max: largest bend between a branch and its child "
+                      "(Hu et al. 2017 §5.4)."),
+    "beta_max_deg": ("largest deviation from the field (°)", "β_max: largest deviation from the direction field "
+                     "(Hu et al. 2017 §5.4)."),
+    "phi_max_deg": ("sibling pruning angle (°)", "φ_max: pruning angle between sibling branches (Hu et al. "
+                    "2017 §5.4)."),
+}, advanced=("voxel_m", "radius_m", "k", "theta_upper_deg", "theta_lower_deg", "k1", "k2", "alpha_max_deg",
+             "beta_max_deg", "phi_max_deg"),
+   ranges={"voxel_m": (0.01, 5.0), "radius_m": (0.05, 20.0), "k": (1, 1000), "theta_upper_deg": (-90.0, 90.0),
+           "theta_lower_deg": (-90.0, 90.0), "k1": (0.01, 100.0), "k2": (0.01, 100.0),
+           "alpha_max_deg": (1.0, 180.0), "beta_max_deg": (1.0, 180.0), "phi_max_deg": (1.0, 180.0)},
+   prefix="Greedy skeleton: ")
 
 GUIDED_PARAMS = method_params(GuidedGrowth, {
-    "step_m": ("Growth step (m)", "Guided growth: internode length (Guo et al. §5.2)."),
-    "kill_distance_m": ("Kill distance (m)", "Guided growth: points this close to a branch are reached (§5.2)."),
-    "tropism": ("Tropism", "Guided growth: weight of the upward tendency in the growth direction (Eq. 9)."),
-}, advanced=("tropism",))
+    "step_m": ("growth step (m)", "Internode length l of Guo et al. 2018 (§5.2)."),
+    "kill_distance_m": ("kill distance (m)", "Points this close to a branch are reached: d_k of Guo et al. 2018 "
+                        "(§5.2)."),
+    "tropism": ("tropism weight", "Weight β of the upward tendency in the growth direction (Guo et al. 2018, "
+                "Eq. 9)."),
+}, advanced=("step_m", "kill_distance_m", "tropism"),
+   ranges={"step_m": (0.01, 10.0), "kill_distance_m": (0.01, 20.0), "tropism": (0.0, 10.0)},
+   prefix="Guided growth: ")
+
+METHOD_LABELS = ("Hybrid: greedy skeleton, guided growth where it fails", "Greedy skeleton (Hu et al. 2017)",
+                 "Guided growth (Guo et al. 2018)", "Dense scans (Yan et al. 2009)",
+                 "Automatic: dense where the scan is dense", "Completed: hybrid plus grown small branches")
 
 
 def _methods(args):
@@ -133,20 +155,22 @@ RECONSTRUCT_TREES = Algorithm(
     ),
     params=(
         input_cloud(" It must carry a treeID dimension (0 = no tree)."),
-        Param("METHOD", ENUM, "Method", options=METHODS, default="hybrid",
+        Param("METHOD", ENUM, "Reconstruction method", options=METHODS, default="hybrid", labels=METHOD_LABELS,
               help="hybrid: greedy skeleton, guided growth where it fails (Hu §6.2); greedy: Hu et al. "
                    "only; guided: Guo et al. only; dense: Yan et al. variational k-means, for terrestrial "
                    "or drone scans where branches are visible; auto: dense for trees dense enough "
                    "(8th neighbour within 0.25 m, lower stem scanned), hybrid for the others; completed: "
                    "hybrid, then small branches grown by self-similarity (the sketch paper §6, Table 1 "
                    "angles) inside the crown's silhouettes seen from the south and from the east, for "
-                   "fuller crowns where the scan saw only the main branches."),
+                   "fuller crowns where the scan saw only the main branches. Each method's own settings are under "
+                   "Advanced parameters, named after it."),
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
-        Param("LOD", INTEGER, "Level of detail", default=0, minimum=0, maximum=2,
+        Param("LOD", INTEGER, "Level of detail (0–2)", default=0, minimum=0, maximum=2,
               help="0: light models (4-sided branches, twigs under 3 cm pruned; ~40 kB a tree); 1: 8 sides, "
                    "smoothed (~0.5 MB a tree); 2: 12 sides, every twig."),
         Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
+              labels=LEAF_LABELS,
               help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise."),
         crs_override(),
         Param("MODELS", FILE_OUT, "3D models (GLB)", file_filter="glTF binary (*.glb)", optional=True,
@@ -174,6 +198,7 @@ RECONSTRUCT_TREES = Algorithm(
                    "branches_order<o> per order, qsm_method)."),
     ),
     run=run,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Trees modelled."),),
 )
 
 ALGORITHMS = (RECONSTRUCT_TREES,)

@@ -7,7 +7,7 @@ from ..core.progress import scaled
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from ..core.table import VectorTable
 from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
-from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
+from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
                    Algorithm, Feedback, Param, Result)
 
 LAS_FILTER = "LAZ (*.laz);;LAS (*.las)"
@@ -60,15 +60,18 @@ NORMALIZE_HEIGHT = Algorithm(
     params=(
         input_cloud(),
         Param("INTERPOLATION", ENUM, "Ground interpolation", options=("tin", "knnidw"), default="tin",
+              labels=("Triangulation (TIN)", "Inverse distance, 10 nearest (k-NN IDW)"),
               help="tin: linear in the triangulation of ground points (exact on planar ground); "
                    "knnidw: inverse-distance weighting of the 10 nearest ground points."),
-        Param("CLASSIFY_GROUND", ENUM, "Classify ground", options=GROUND, default="auto",
+        Param("CLASSIFY_GROUND", ENUM, "Classify ground points", options=GROUND, default="auto",
+              labels=("Only when the tile has none", "Never (use class 2)", "Always (reclassify)"),
               help="auto: only when the tile has no ground class 2; never: fail without ground "
                    "points; always: reclassify, ignoring the file's ground class."),
         Param("GROUND_METHOD", ENUM, "Ground filter", options=("smrf", "csf"), default="smrf",
+              labels=("Morphological filter (SMRF)", "Cloth simulation (CSF)"),
               help="smrf: simple morphological filter (Pingel et al. 2013); csf: cloth simulation "
                    "filter (Zhang et al. 2016)."),
-        Param("REPLACE_Z", BOOLEAN, "Replace Z by height", default=True,
+        Param("REPLACE_Z", BOOLEAN, "Write height above ground as Z", default=True,
               help="Write the height above ground as Z (as lidR's normalize_height does) and keep "
                    "the elevation in an extra dimension 'elevation'; otherwise keep Z and add the "
                    "extra dimension 'height' (metres)."),
@@ -83,41 +86,50 @@ NORMALIZE_HEIGHT = Algorithm(
 # --------------------------------------------------------------------------- segmenttrees
 
 NCUT_PARAMS = method_params(NormalizedCut, {
-    "voxel_m": ("Voxel size d_s (m)", "Normalised cut: pitch of the voxel graph (Hu et al. §4.1, §6.1: "
-                "0.7 m for tens of thousands of points, 0.9 m for millions)."),
-    "radius_m": ("Cylinder radius r_xz (m)", "Normalised cut: voxels farther apart horizontally than this "
-                 "are not linked (Eq. 2)."),
-    "sigma_h_m": ("Horizontal distance scale (m)", "Normalised cut: weight exp(-H/σ_h) of the horizontal "
-                  "distance between voxels (Eq. 2)."),
-    "sigma_v_m": ("Vertical distance scale (m)", "Normalised cut: weight exp(-V/σ_v) of the vertical "
-                  "distance (Eq. 2)."),
-    "sigma_intensity": ("Intensity scale", "Normalised cut: scale of intensity differences, in natural-log "
-                        "units: 1 means a ratio of e ≈ 2.7 between two voxels' intensities costs as much as "
-                        "σ_h of horizontal distance (Eq. 2)."),
-    "sigma_colour": ("Colour scale", "Normalised cut: weight of RGB differences (0–1 colour units, Eq. 2); "
+    "voxel_m": ("voxel size (m)", "Pitch of the voxel graph, d_s in Hu et al. 2017 (§4.1, §6.1: 0.7 m for tens "
+                "of thousands of points, 0.9 m for millions)."),
+    "radius_m": ("link radius (m)", "Voxels farther apart horizontally than this are not linked: the cylinder "
+                 "radius r_xz of Hu et al. 2017, Eq. 2."),
+    "sigma_h_m": ("horizontal distance scale (m)", "Weight exp(-H/σ_h) of the horizontal distance between "
+                  "voxels (Hu et al. 2017, Eq. 2)."),
+    "sigma_v_m": ("vertical distance scale (m)", "Weight exp(-V/σ_v) of the vertical distance (Hu et al. "
+                  "2017, Eq. 2)."),
+    "sigma_intensity": ("intensity scale", "Scale σ_I of intensity differences, in natural-log units: 1 means "
+                        "a ratio of e ≈ 2.7 between two voxels' intensities costs as much as σ_h of horizontal "
+                        "distance (Hu et al. 2017, Eq. 2)."),
+    "sigma_colour": ("colour scale", "Weight of RGB differences (0–1 colour units; Hu et al. 2017, Eq. 2); "
                      "ignored without RGB."),
-    "top_window_points": ("Tree-top window: canopy points", "Normalised cut: on sparse clouds the tree-top "
-                          "window is widened until it holds at least this many canopy first returns (2.7 m at "
-                          "4.3 points/m²); 0, or a TOP_WINDOW_M you set, keeps the window fixed."),
-    "apex_window_m": ("Steep-apex window (m)", "Normalised cut: maxima of this narrow window also count as tree "
-                      "tops when the canopy falls away steeply from them (conifer tips overtopped on one side "
-                      "by a taller neighbour; Sylva's rule, not the paper's); 0 turns this off."),
-    "apex_slope": ("Steep-apex drop (m/m)", "Normalised cut: the drop around such a tip, metres per metre."),
-    "apex_sectors": ("Steep-apex directions", "Normalised cut: in how many of 8 compass directions the canopy "
-                     "must drop that steeply."),
-}, advanced=("sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour", "top_window_points", "apex_window_m",
-             "apex_slope", "apex_sectors"))
+    "top_window_points": ("canopy points per tree-top window", "On sparse clouds the tree-top window is widened "
+                          "until it holds at least this many canopy first returns (2.7 m at 4.3 points/m²); 0, "
+                          "or a tree-top window you set, keeps the window fixed (Sylva, not in the paper)."),
+    "apex_window_m": ("steep-apex window (m)", "Maxima of this narrow window also count as tree tops when the "
+                      "canopy falls away steeply from them (conifer tips overtopped on one side by a taller "
+                      "neighbour; Sylva, not in the paper); 0 turns this off."),
+    "apex_slope": ("steep-apex drop (m/m)", "The drop around such a tip, metres per metre."),
+    "apex_sectors": ("steep-apex directions (of 8)", "In how many of 8 compass directions the canopy must "
+                     "drop that steeply."),
+}, advanced=("voxel_m", "radius_m", "sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour",
+             "top_window_points", "apex_window_m", "apex_slope", "apex_sectors"),
+   ranges={"voxel_m": (0.05, 10.0), "radius_m": (0.05, 50.0), "sigma_h_m": (0.01, 100.0),
+           "sigma_v_m": (0.01, 100.0), "sigma_intensity": (0.001, 100.0), "sigma_colour": (0.001, 10.0),
+           "top_window_points": (0.0, 10000.0), "apex_window_m": (0.0, 20.0), "apex_slope": (0.01, 100.0),
+           "apex_sectors": (1, 8)},
+   prefix="Normalised cut: ")
 
 CHM_PARAMS = method_params(ChmRegionGrowing, {
-    "resolution_m": ("CHM cell size (m)", "Region growing: cell size of the canopy height model."),
-    "th_seed": ("Seed threshold", "Region growing: a cell joins a tree when higher than this fraction of "
-                "the tree's top (Dalponte & Coomes 2016)."),
-    "th_cr": ("Crown threshold", "Region growing: ... and higher than this fraction of the mean height of "
-              "the crown grown so far."),
-    "max_crown_diameter_m": ("Maximum crown diameter (m)", "Region growing: no crown grows wider."),
-}, advanced=("th_seed", "th_cr"))
+    "resolution_m": ("cell size (m)", "Cell size of the canopy height model the crowns grow on."),
+    "th_seed": ("seed threshold (share of top)", "A cell joins a tree when higher than this fraction of "
+                "the tree's top (th_seed of Dalponte & Coomes 2016)."),
+    "th_cr": ("crown threshold (share of mean)", "... and higher than this fraction of the mean height of "
+              "the crown grown so far (th_cr of Dalponte & Coomes 2016)."),
+    "max_crown_diameter_m": ("maximum crown diameter (m)", "No crown grows wider."),
+}, advanced=("resolution_m", "th_seed", "th_cr", "max_crown_diameter_m"),
+   ranges={"resolution_m": (0.05, 10.0), "th_seed": (0.0, 1.0), "th_cr": (0.0, 1.0),
+           "max_crown_diameter_m": (0.5, 100.0)},
+   prefix="CHM region growing: ")
 
 METHODS = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
+SEGMENTATION_LABELS = ("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)")
 
 
 def run_segment(args: dict, feedback: Feedback) -> Result:
@@ -191,18 +203,21 @@ SEGMENT_TREES = Algorithm(
     params=(
         input_cloud(),
         Param("METHOD", ENUM, "Segmentation method", options=tuple(METHODS), default="ncut",
+              labels=SEGMENTATION_LABELS,
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on "
-                   "the canopy height model (Dalponte & Coomes 2016)."),
+                   "the canopy height model (Dalponte & Coomes 2016). Each method's own settings are "
+                   "under Advanced parameters, named after it."),
         Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
               help="Diameter of the local-maximum window that finds the tree tops guiding the "
-                   "segmentation; left empty, each method uses its own measured default."),
+                   "segmentation; left empty (or 0), each method uses its own measured default."),
         Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
               help="Lower tops are not trees; lower points belong to a tree only under its crown."),
         *NCUT_PARAMS,
         *CHM_PARAMS,
         Param("HULL", ENUM, "Crown outline", options=("convex", "concave"), default="convex",
+              labels=("Convex hull", "Concave hull (tighter)"),
               help="convex: convex hull of the crown points; concave: a tighter outline (CONCAVITY)."),
-        Param("CONCAVITY", NUMBER, "Concavity", default=0.3, minimum=0.0, maximum=1.0, advanced=True,
+        Param("CONCAVITY", NUMBER, "Concave hull: concavity (0–1)", default=0.3, minimum=0.0, maximum=1.0, advanced=True,
               help="For concave outlines: 1 = convex hull, smaller values hug the points more tightly."),
         Param("CROWN_BASE_GAP_M", NUMBER, "Crown base gap (m)", default=1.5, minimum=0.1, maximum=20.0,
               advanced=True, help="An empty height interval at least this tall separates crown and stem."),
@@ -221,5 +236,6 @@ SEGMENT_TREES = Algorithm(
               help="One row per tree; the fields are documented in the README."),
     ),
     run=run_segment,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Trees found in the tile."),),
 )
 ALGORITHMS = (NORMALIZE_HEIGHT, SEGMENT_TREES)

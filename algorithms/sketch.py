@@ -9,36 +9,38 @@ import numpy as np
 from ..core.forest import LEAVES
 from ..core.reconstruct.sketch import SketchTree
 from .common import build_method, method_params
-from .spec import (ENUM, FILE_OUT, INTEGER, LINE, NUMBER, POINT, POLYGON, VECTOR, VECTOR_OUT, Algorithm, Feedback,
-                   Param, Result)
+from .spec import (ENUM, FILE_OUT, INTEGER, LEAF_LABELS, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
+                   VECTOR_OUT, Algorithm, Feedback, Param, Result)
 
-_COSINES = ("cos_theta1", "cos_theta2", "cos_phi1", "cos_phi2")
-
-SKETCH_PARAMS = tuple(
-    dataclasses.replace(p, minimum=-1.0, maximum=1.0) if p.name.lower() in _COSINES else p
-    for p in method_params(SketchTree, {
-        "sigma": ("σ: copied share of the parent branch", "Small branches copy the first σ of their parent "
-                  "branch's nodes (§6, Eq. 8; Table 1: 0.3)."),
-        "cos_theta1": ("cos θ1", "Smallest cosine of the angle between a small branch and its parent "
-                       "(Table 1: 0.5, i.e. at most 60°)."),
-        "cos_theta2": ("cos θ2", "Largest cosine of that angle (Table 1: 0.9, i.e. at least 26°)."),
-        "cos_phi1": ("cos φ1", "Smallest cosine of the angle between two successive small branches of one "
-                     "branch (Table 1: −0.5, i.e. at most 120°)."),
-        "cos_phi2": ("cos φ2", "Largest cosine of that angle (Table 1: 0.5, i.e. at least 60°)."),
-        "levels": ("Small branch levels l", "Generations of small branches grown from the drawn ones "
-                   "(Table 1: 2; 0 keeps the drawn branches only)."),
-        "buds_per_branch": ("Buds per branch", "Candidate small branches per branch before crowded buds "
-                            "are removed (not in the paper: 8)."),
-        "crowd_radius_fraction": ("Crowding radius (share of height)", "A bud is dropped when more than "
-                                  "CROWD_MAX small-branch nodes lie within this share of the tree height."),
-        "crowd_max": ("Crowding limit", "See CROWD_RADIUS_FRACTION."),
-        "step_fraction": ("Resampling step (share of height)", "Strokes are resampled at this share of the "
-                          "tree height before depth retrieval (0.01: a node every 1 %)."),
-        "snap_fraction": ("Snapping tolerance (share of height)", "A stroke end this close to another stroke "
-                          "(share of the drawing's height) is joined to it."),
-        "seed": ("Random seed", "Seed of the small-branch angles: the same inputs and seed give the same tree."),
-    }, advanced=("sigma", "cos_theta1", "cos_theta2", "cos_phi1", "cos_phi2", "buds_per_branch",
-                 "crowd_radius_fraction", "crowd_max", "step_fraction", "snap_fraction")))
+SKETCH_PARAMS = method_params(SketchTree, {
+    "sigma": ("Copied share of the parent branch (0–1)", "Small branches copy the first σ of their parent "
+              "branch's nodes (the sketch paper §6, Eq. 8; Table 1: 0.3)."),
+    "cos_theta1": ("Branch angle: smallest cosine", "Smallest cosine of the angle θ between a small branch and "
+                   "its parent (θ1 of Table 1: 0.5, i.e. at most 60°)."),
+    "cos_theta2": ("Branch angle: largest cosine", "Largest cosine of that angle (θ2 of Table 1: 0.9, i.e. at "
+                   "least 26°)."),
+    "cos_phi1": ("Angle between successive branches: smallest cosine", "Smallest cosine of the angle φ between "
+                 "two successive small branches of one branch (φ1 of Table 1: −0.5, i.e. at most 120°)."),
+    "cos_phi2": ("Angle between successive branches: largest cosine", "Largest cosine of that angle (φ2 of "
+                 "Table 1: 0.5, i.e. at least 60°)."),
+    "levels": ("Small branch generations", "Generations l of small branches grown from the drawn ones "
+               "(Table 1: 2; 0 keeps the drawn branches only)."),
+    "buds_per_branch": ("Buds per branch", "Candidate small branches per branch before crowded buds "
+                        "are removed (Sylva, not in the paper: 8)."),
+    "crowd_radius_fraction": ("Crowding radius (share of height)", "A bud is dropped when more than "
+                              "CROWD_MAX small-branch nodes lie within this share of the tree height."),
+    "crowd_max": ("Crowding limit (nodes)", "See CROWD_RADIUS_FRACTION."),
+    "step_fraction": ("Resampling step (share of height)", "Strokes are resampled at this share of the "
+                      "tree height before depth retrieval (0.01: a node every 1 %)."),
+    "snap_fraction": ("Snapping tolerance (share of height)", "A stroke end this close to another stroke "
+                      "(share of the drawing's height) is joined to it."),
+    "seed": ("Random seed", "Seed of the small-branch angles: the same inputs and seed give the same tree."),
+}, advanced=("sigma", "cos_theta1", "cos_theta2", "cos_phi1", "cos_phi2", "buds_per_branch",
+             "crowd_radius_fraction", "crowd_max", "step_fraction", "snap_fraction"),
+   ranges={"sigma": (0.01, 1.0), "cos_theta1": (-1.0, 1.0), "cos_theta2": (-1.0, 1.0), "cos_phi1": (-1.0, 1.0),
+           "cos_phi2": (-1.0, 1.0), "levels": (0, 6), "buds_per_branch": (0, 100),
+           "crowd_radius_fraction": (0.001, 0.999), "crowd_max": (0, 10000), "step_fraction": (0.001, 0.5),
+           "snap_fraction": (0.001, 0.5), "seed": (0, 2 ** 31 - 1)})
 
 
 def _geometries(table, what: str):
@@ -207,16 +209,16 @@ TREE_FROM_SKETCH = Algorithm(
         Param("LOCATION", VECTOR, "Tree location", geometry=POINT,
               help="A point layer in a projected CRS giving the tree's base; the outputs use its CRS. When it "
                    "holds several points the first one is used (with a warning). Its z, if any, is the ground."),
-        Param("HEIGHT_M", NUMBER, "Tree height (m)", default=15.0, minimum=0.0,
+        Param("HEIGHT_M", NUMBER, "Tree height (m)", default=15.0, minimum=0.5, maximum=150.0,
               help="Scales both drawings: base to top equals this height."),
         Param("FRONT_AZIMUTH_DEG", NUMBER, "Front view azimuth (°)", default=0.0, optional=True,
               minimum=-360.0, maximum=360.0,
               help="Compass bearing the front photo was taken looking along (0: looking north, so the "
                    "drawing's right is east and the side photo looks west)."),
         *SKETCH_PARAMS,
-        Param("LOD", INTEGER, "Level of detail", default=1, minimum=0, maximum=2, advanced=True,
+        Param("LOD", INTEGER, "Level of detail (0–2)", default=1, minimum=0, maximum=2, advanced=True,
               help="0: light model (4-sided branches); 1: 8 sides, smoothed; 2: 12 sides, every twig."),
-        Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto",
+        Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto", labels=LEAF_LABELS,
               help="auto: needle clusters on a conical crown, leaf cards otherwise; none: bare wood."),
         Param("MODEL", FILE_OUT, "3D model (GLB)", file_filter="glTF binary (*.glb)", optional=True,
               help="One GLB with a node tree_1, georeferenced at LOCATION (.prj and origin sidecars)."),
@@ -228,6 +230,7 @@ TREE_FROM_SKETCH = Algorithm(
                    "model_file."),
     ),
     run=run,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Always 1."),),
 )
 
 ALGORITHMS = (TREE_FROM_SKETCH,)

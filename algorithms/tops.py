@@ -6,7 +6,7 @@ import shapely
 from ..core.progress import scaled
 from ..core.table import VectorTable
 from .common import crs_override, drop_noise, is_raster, load_cloud, require_existing
-from .spec import ENUM, FILE, NUMBER, POINT, VECTOR_OUT, Algorithm, Feedback, Param, Result
+from .spec import ENUM, FILE, NUMBER, NUMBER_RESULT, POINT, VECTOR_OUT, Algorithm, Feedback, Param, Result
 
 WINDOWS = ("fixed", "variable")
 
@@ -55,6 +55,7 @@ TREE_TOPS = Algorithm(
               file_filter="LAS/LAZ or GeoTIFF (*.las *.laz *.tif *.tiff);;All files (*)",
               help="A LiDAR tile, or a CHM raster of heights above ground in metres."),
         Param("WINDOW", ENUM, "Search window", options=WINDOWS, default="variable",
+              labels=("Fixed diameter", "Grows with tree height"),
               help="variable (default): the window grows with height (1.5 m + 0.1 x height, 2–8 m), as "
                    "crowns of taller trees are wider; measured best on mixed stands (benchmarks/terrain.py). "
                    "fixed: one circular window of WINDOW_DIAMETER_M for every tree."),
@@ -68,5 +69,6 @@ TREE_TOPS = Algorithm(
               help="Point layer (PointZ, z = elevation of the top) with tree_id and height."),
     ),
     run=run,
+    results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Tree tops found."),),
 )
 ALGORITHMS = (TREE_TOPS,)

@@ -45,6 +45,7 @@ import numpy as np
 
 from .atomic import atomic_path, atomic_write_bytes, move_into_place, temporary_beside
 from .errors import Cancelled, InputError, OutputError, ParameterError, SylvaError, disk_error
+from .io.gpkg import GpkgMerge, default_styles
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile, tree_ids
 from .progress import CancelCheck, Progress, check, report
 
@@ -436,102 +437,11 @@ def _remap_las(path, mapping: dict) -> None:
     write_las(path, cloud.with_attrs(treeID=tid.astype(np.int32)))
 
 
-#: Parts are read through a memory map of up to this many bytes each (SQLite's mmap_size), not read() calls.
-MERGE_MMAP_BYTES = 1 << 30
-
-
-class GpkgMerge:
-    """Appends per-tile GeoPackages to one (``path``, a new file), table by table in SQL.
-
-    Memory stays bounded (sqlite copies rows); extents are the union of the parts'.
-    :meth:`add` returns the fids each table's new rows got, which :meth:`remap`
-    takes to rewrite their ``tree_id`` values.  The connection may be handed from
-    one thread to another (never used by two at once).
-    """
-
-    def __init__(self, path):
-        from .io.gpkg import new_file_pragmas
-
-        self.con = sqlite3.connect(path, check_same_thread=False)
-        # a temporary file renamed at the end: no journal, no fsync per part, larger pages
-        new_file_pragmas(self.con)
-        self.con.execute(f"PRAGMA mmap_size = {MERGE_MMAP_BYTES}")   # parts attached later are read mapped too
-        self.con.execute("PRAGMA application_id = 1196444487")
-        self.con.execute("PRAGMA user_version = 10200")
-        self.created: Dict[str, set] = {}
-        self.parts = 0
-
-    def add(self, part) -> Dict[str, tuple]:
-        """Append the layers of the GeoPackage ``part``; returns {table: (first fid - 1, last fid)}."""
-        con = self.con
-        ranges = {}
-        con.execute("ATTACH DATABASE ? AS part", (str(part),))
-        try:
-            if self.parts == 0:
-                for (sql,) in con.execute("SELECT sql FROM part.sqlite_master WHERE type='table' AND name LIKE 'gpkg_%'"):
-                    con.execute(sql)
-                con.execute("INSERT INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                con.execute("INSERT INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                con.execute("INSERT INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-            else:
-                con.execute("INSERT OR IGNORE INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                con.execute("INSERT OR IGNORE INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                con.execute("INSERT OR IGNORE INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-                con.execute(
-                    "UPDATE gpkg_contents SET "
-                    "min_x = min(coalesce(min_x, (SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_x)), "
-                    "min_y = min(coalesce(min_y, (SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_y)), "
-                    "max_x = max(coalesce(max_x, (SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_x)), "
-                    "max_y = max(coalesce(max_y, (SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_y))")
-            tables = [r[0] for r in con.execute(
-                "SELECT name FROM part.sqlite_master WHERE type='table' AND name NOT LIKE 'gpkg_%' "
-                "AND name NOT LIKE 'sqlite_%'")]
-            for t in tables:
-                cols = [r[1] for r in con.execute(f'PRAGMA part.table_info("{t}")') if r[1] != "fid"]
-                if t not in self.created:
-                    (sql,) = con.execute("SELECT sql FROM part.sqlite_master WHERE name = ?", (t,)).fetchone()
-                    con.execute(sql)
-                    self.created[t] = set(cols)
-                for c in cols:
-                    if c not in self.created[t]:
-                        con.execute(f'ALTER TABLE "{t}" ADD COLUMN "{c}"')
-                        self.created[t].add(c)
-                q = ",".join(f'"{c}"' for c in cols)
-                (before,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
-                con.execute(f'INSERT INTO main."{t}" ({q}) SELECT {q} FROM part."{t}"')
-                (after,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
-                if "tree_id" in cols:
-                    ranges[t] = (before, after)
-            con.commit()
-        finally:
-            con.execute("DETACH DATABASE part")
-        self.parts += 1
-        return ranges
-
-    def remap(self, ranges: Dict[str, tuple], mapping: dict) -> None:
-        """Rewrite ``tree_id`` {old: new} in the rows ``ranges`` (what :meth:`add` returned for a part)."""
-        if not mapping or not ranges:
-            return
-        con = self.con
-        con.execute("CREATE TEMP TABLE IF NOT EXISTS idmap (old INTEGER PRIMARY KEY, new INTEGER)")
-        con.execute("DELETE FROM idmap")
-        con.executemany("INSERT INTO idmap VALUES (?,?)", list(mapping.items()))
-        for t, (lo, hi) in ranges.items():
-            con.execute(f'UPDATE main."{t}" SET tree_id = (SELECT new FROM idmap WHERE old = tree_id) '
-                        f'WHERE fid > ? AND fid <= ? AND tree_id IN (SELECT old FROM idmap)', (lo, hi))
-        con.commit()
-
-    def close(self) -> None:
-        self.con.commit()
-        self.con.close()
-
-
 def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
-    """Concatenate the layers of per-tile GeoPackages into one at ``path`` (:class:`GpkgMerge`).
+    """Concatenate the layers of per-tile GeoPackages into one at ``path`` (:class:`~.io.gpkg.GpkgMerge`).
+
+    The result conforms to GeoPackage 1.2 (GDAL's ``validate_gpkg.py``), has an
+    R-tree per geometry column and carries Sylva's QGIS styles in ``layer_styles``.
 
     ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
     The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
@@ -540,12 +450,14 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
     with atomic_path(path) as tmp:
-        merge = GpkgMerge(tmp)
+        merge = GpkgMerge(tmp, styles=default_styles(LAYERS))
         try:
             for part, mapping in zip(parts, id_maps):
                 merge.remap(merge.add(part), mapping)
-        finally:
-            merge.close()
+        except BaseException:
+            merge.abort()
+            raise
+        merge.close()
     return Path(path)
 
 
@@ -566,7 +478,7 @@ class _OrderedMerge:
     def __init__(self, path: Path, order: Sequence[str]):
         self.path = Path(path)
         self.tmp = temporary_beside(self.path)
-        self.merge = GpkgMerge(self.tmp)
+        self.merge = GpkgMerge(self.tmp, styles=default_styles(LAYERS))
         self.order = list(order)
         self.next = 0
         self.parts: Dict[str, Optional[Path]] = {}
@@ -577,7 +489,7 @@ class _OrderedMerge:
 
     def __exit__(self, kind, value, tb):
         if kind is not None:
-            self.merge.close()
+            self.merge.abort()
             self.tmp.unlink(missing_ok=True)
         return False
 

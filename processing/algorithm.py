@@ -22,6 +22,8 @@ from qgis.core import (
     QgsProcessingAlgorithm,
     QgsProcessingException,
     QgsProcessingLayerPostProcessorInterface,
+    QgsProcessingOutputNumber,
+    QgsProcessingOutputString,
     QgsProcessingParameterBoolean,
     QgsProcessingParameterCrs,
     QgsProcessingParameterDefinition,
@@ -37,7 +39,7 @@ from qgis.core import (
     QgsProcessingParameterString,
     QgsWkbTypes,
 )
-from qgis.PyQt.QtCore import QVariant
+from qgis.PyQt.QtCore import QUrl, QVariant
 
 from ..algorithms import spec as S
 from ..core.errors import SylvaError
@@ -45,6 +47,8 @@ from ..plugin import deps
 
 #: The .qml styles that Param.style names.
 STYLES = Path(__file__).resolve().parents[1] / "resources" / "styles"
+#: The HTML help page of each algorithm (resources/help/ID.html, made by sylva.algorithms.helppages).
+HELP = Path(__file__).resolve().parents[1] / "resources" / "help"
 
 _SINK_TYPES = {S.POINT: QgsProcessing.TypeVectorPoint, S.LINE: QgsProcessing.TypeVectorLine,
                S.POLYGON: QgsProcessing.TypeVectorPolygon, S.NO_GEOMETRY: QgsProcessing.TypeVector}
@@ -88,12 +92,11 @@ def qgs_parameter(p: S.Param):
         q = QgsProcessingParameterNumber(
             p.name, p.description,
             QgsProcessingParameterNumber.Double if k == S.NUMBER else QgsProcessingParameterNumber.Integer,
-            p.default, p.optional,
-            p.minimum if p.minimum is not None else -1e300, p.maximum if p.maximum is not None else 1e300)
+            p.default, p.optional, p.minimum, p.maximum)  # finite bounds, within 32 bits for integers (spec.Param)
     elif k == S.BOOLEAN:
         q = QgsProcessingParameterBoolean(p.name, p.description, bool(p.default), p.optional)
     elif k == S.ENUM:
-        q = QgsProcessingParameterEnum(p.name, p.description, list(p.options), False,
+        q = QgsProcessingParameterEnum(p.name, p.description, list(p.option_labels), False,
                                        p.options.index(p.default) if p.default else None, p.optional)
     elif k == S.CRS:
         q = QgsProcessingParameterCrs(p.name, p.description, p.default, True)
@@ -113,7 +116,7 @@ def qgs_parameter(p: S.Param):
         q = QgsProcessingParameterFolderDestination(p.name, p.description, None, p.optional)
     else:  # pragma: no cover - a new kind must be mapped here
         raise ValueError(f"no Processing parameter for kind {k!r}")
-    q.setHelp(p.help)
+    q.setHelp(p.help + S.param_facts(p))
     if p.advanced:
         q.setFlags(q.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
     return q
@@ -186,11 +189,56 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         return self.spec.group_id
 
     def shortHelpString(self):  # noqa: N802
-        return self.spec.help_text().replace("\n", "<br>")
+        from ..algorithms.helppages import short_help
+
+        return short_help(self.spec)
+
+    def helpUrl(self):  # noqa: N802
+        page = HELP / f"{self.spec.id}.html"
+        return QUrl.fromLocalFile(str(page)).toString() if page.is_file() else ""
 
     def initAlgorithm(self, config=None):  # noqa: N802
         for p in self.spec.params:
             self.addParameter(qgs_parameter(p))
+        for r in self.spec.results:
+            cls = QgsProcessingOutputNumber if r.kind == S.NUMBER_RESULT else QgsProcessingOutputString
+            self.addOutput(cls(r.name, r.description))
+
+    def _plain(self, parameters):
+        """``parameters`` with enum values given as an option id or label turned into the option's index
+        (qgis_process and Python callers may pass "ncut" or its label as the CLI does)."""
+        out = dict(parameters)
+        for p in self.spec.params:
+            value = out.get(p.name)
+            if p.kind == S.ENUM and isinstance(value, str) and value.strip() and not value.strip().isdigit():
+                try:
+                    out[p.name] = p.options.index(p.option(value))
+                except ValueError:
+                    pass   # left for QGIS to refuse
+        return out
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802
+        """QGIS's own checks, then every numeric value against its real range (NaN and infinities refused),
+        so qgis_process, processing.run and the dialog say the same one line as the CLI."""
+        parameters = self._plain(parameters)
+        problem = self._range_problem(parameters, context)
+        if problem:
+            return False, problem
+        return super().checkParameterValues(parameters, context)
+
+    def _range_problem(self, parameters, context):
+        for p in self.spec.params:
+            if p.kind not in (S.NUMBER, S.INTEGER):
+                continue
+            raw = parameters.get(p.name)
+            if raw is None or (isinstance(raw, str) and not raw.strip()):
+                continue
+            if not isinstance(raw, (int, float, str)):   # a QgsProperty, a model link...: read its value
+                raw = self.parameterAsDouble(parameters, p.name, context)
+            why = p.problem(raw)
+            if why:
+                return f"{p.name} ({p.description}): {why}"
+        return None
 
     def _value(self, p: S.Param, parameters, context):
         k = p.kind
@@ -228,6 +276,10 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         from ..algorithms.common import OutputGuard, check_paths
         from ..core.errors import disk_error
 
+        parameters = self._plain(parameters)
+        problem = self._range_problem(parameters, context)
+        if problem:
+            raise QgsProcessingException(problem)
         guard = None
         try:
             args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
@@ -288,7 +340,8 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
             wkb = table.geometries  # already ISO WKB
         elif table.geometries is not None:
             wkb = shapely.to_wkb(table.geometries, output_dimension=3 if table.has_z else 2, flavor="iso")
-        columns = [python_values(table.columns[c], types[c]) for c in types]
+        columns = [python_values(S.display_round(table.columns[c]) if types[c] == "real" else table.columns[c],
+                                 types[c]) for c in types]
         n = len(table)
         for i in range(n):
             if i % 10000 == 0 and feedback.isCanceled():
