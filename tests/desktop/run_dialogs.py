@@ -33,6 +33,11 @@ def finish():
         layers = list(QgsProject.instance().mapLayers().values())
         report["project_layers"] = [[layer.name(), layer.type(), layer.isValid()] for layer in layers]
         canvas = iface.mapCanvas()
+        root = QgsProject.instance().layerTreeRoot()
+        for layer in layers:   # the 2D map of the results: crowns and tops over nothing else
+            node = root.findLayer(layer.id())
+            if node is not None:
+                node.setItemVisibilityChecked(layer.name().startswith(("Crowns", "Tree tops")))
         crowns = [layer for layer in layers if layer.name().lower().startswith("crowns")]
         if crowns:
             canvas.setDestinationCrs(crowns[0].crs())
