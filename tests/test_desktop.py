@@ -123,5 +123,13 @@ def test_counts_are_declared_outputs_and_returned(desktop_report):
     assert trees[0][2] == int(float(seg["results"]["TREE_COUNT"]))
 
 
+def test_the_trees_table_shows_rounded_values(desktop_report):
+    row = desktop_report["trees_row"]
+    for name, value in row.items():
+        if isinstance(value, float) and abs(value) >= 1:
+            assert round(value, 3) == value, (name, value)
+    assert row["height"] > 2.0 and row["n_points"] > 0
+
+
 def test_the_missing_packages_hint_names_a_python_inside_qgis(desktop_report):
     assert "python3" in Path(desktop_report["interpreter"]).name
