@@ -39,7 +39,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -584,14 +584,22 @@ class RunReport:
     id_collisions_rewritten: int
     gpkg: Optional[str]
     tileset: Optional[str]
+    compile_seconds: float = 0.0   # of ``seconds``: compiling the numba kernels (a first run after installing)
 
     @property
     def points_per_s(self) -> float:
         return self.points / max(self.seconds, 1e-9)
 
+    @property
+    def work_seconds(self) -> float:
+        """``seconds`` without the kernels' compilation: what later runs take."""
+        return max(self.seconds - self.compile_seconds, 0.0)
+
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d["points_per_s"] = round(self.points_per_s, 1)
+        d["work_seconds"] = round(self.work_seconds, 3)
+        d["work_points_per_s"] = round(self.points / max(self.work_seconds, 1e-9), 1)
         return d
 
     def summary(self) -> str:
@@ -602,11 +610,29 @@ class RunReport:
                  + (f"dask scheduler {self.scheduler}" if self.scheduler else f"{self.workers} worker(s)"),
                  "peak memory per worker (MB): " + ", ".join(f"{k}: {v:.0f}" for k, v in
                                                            sorted(self.peak_rss_mb_per_worker.items()))]
+        if self.compile_seconds >= 0.05:
+            lines.insert(2, f"of which {self.compile_seconds:.1f} s compiling the numba kernels (once after installing "
+                            f"or updating; cached for later runs): {self.work_seconds:.1f} s of work, "
+                            f"{self.points / max(self.work_seconds, 1e-9):,.0f} points/s")
         if self.id_collisions_rewritten:
             lines.append(f"{self.id_collisions_rewritten} tile(s) rewritten to resolve tree-ID collisions")
         for f in self.failures:
             lines.append(f"FAILED {f['name']} ({f.get('attempts', 0)} attempt(s)): {f['reason']}")
         return "\n".join(lines) + "\n"
+
+
+def _compile_seconds(done, skipped, c0: float) -> float:
+    """Kernel compilation of the run: this process's (serial tiles, merge, tileset), plus the worker processes'
+    as their tile records report it (the serial tiles' are already in this process's count)."""
+    from .jit import compile_seconds
+
+    here = compile_seconds() - c0
+    pid = os.getpid()
+    per_worker: Dict[Any, float] = {}
+    for r in done:
+        if r["name"] not in skipped and r.get("pid") != pid:
+            per_worker[r.get("pid")] = per_worker.get(r.get("pid"), 0.0) + float(r.get("compile_seconds", 0.0))
+    return here + max(per_worker.values(), default=0.0)   # workers compile side by side: the longest one
 
 
 def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), workers: int = 1,
@@ -619,7 +645,10 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     ``resume`` skips tiles whose manifest matches.  Failed tiles are retried
     once and listed in the report; :class:`Cancelled` stops the run.
     """
+    from .jit import compile_seconds
+
     t0 = time.perf_counter()
+    c0 = compile_seconds()
     out = Path(out_dir)
     check_options(options)
     if out.exists() and not out.is_dir():
@@ -868,7 +897,8 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
         points=int(sum(r["points"] for r in done)), seconds=round(time.perf_counter() - t0, 3),
         workers=int(workers), scheduler=None if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
         peak_rss_mb_per_worker=peaks, id_collisions_rewritten=len(maps),
-        gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root))
+        gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root),
+        compile_seconds=round(_compile_seconds(done, skipped, c0), 3))
     atomic_write_bytes(out / "report.json", (json.dumps(result.as_dict(), indent=1, default=str) + "\n").encode())
     atomic_write_bytes(out / "report.txt", result.summary().encode("utf-8"))
     report(progress, 1.0, f"{result.trees} trees")

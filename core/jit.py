@@ -27,10 +27,51 @@ import functools
 import os
 import threading
 
-__all__ = ["njit", "jit_status", "Kernel"]
+__all__ = ["njit", "jit_status", "Kernel", "compile_seconds", "kernels"]
 
 _LOCK = threading.RLock()
 _NUMBA = None          # the numba module once imported, False when unavailable/disabled
+_KERNELS = []          # every Kernel defined (see kernels())
+_COMPILE = {"seconds": 0.0, "count": 0}   # numba compilations (cache misses) in this process
+_DEPTH = threading.local()
+
+
+def _count_compiles(numba) -> None:
+    """Time numba's own "numba:compile" events (real compilations, not cache loads) for compile_seconds()."""
+    import time
+
+    try:
+        from numba.core import event
+    except ImportError:  # pragma: no cover - numba < 0.53
+        return
+
+    class _Timer(event.Listener):
+        def on_start(self, ev):
+            depth = getattr(_DEPTH, "n", 0)
+            if depth == 0:
+                _DEPTH.t0 = time.perf_counter()
+            _DEPTH.n = depth + 1
+
+        def on_end(self, ev):
+            _DEPTH.n = getattr(_DEPTH, "n", 1) - 1
+            if _DEPTH.n == 0:
+                with _LOCK:
+                    _COMPILE["seconds"] += time.perf_counter() - _DEPTH.t0
+                    _COMPILE["count"] += 1
+
+    event.register("numba:compile", _Timer())
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent compiling kernels (numba cache misses); 0 when all came from the cache.
+
+    Run reports subtract it from the work (the first run after installing compiles, later runs load)."""
+    return float(_COMPILE["seconds"])
+
+
+def kernels() -> list:
+    """Every :class:`Kernel` defined by the modules imported so far."""
+    return list(_KERNELS)
 
 
 def _numba():
@@ -43,6 +84,7 @@ def _numba():
                 else:
                     try:
                         import numba
+                        _count_compiles(numba)
                         _NUMBA = numba
                     except ImportError:          # pragma: no cover - numba is a dependency
                         _NUMBA = False
@@ -62,6 +104,7 @@ class Kernel:
         self.compiled = None
         self.cached = None          # True: cache enabled; False: compiled without cache; None: not numba
         functools.update_wrapper(self, py_func)
+        _KERNELS.append(self)
 
     def load(self):
         """Compile or load the kernel now (normally done by the first call); returns the callable."""

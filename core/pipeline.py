@@ -386,7 +386,10 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     from .terrain import SMRF, normalize
     from .tops import FixedWindow, TreeTops, find_tree_tops
 
+    from .jit import compile_seconds
+
     t0 = time.perf_counter()
+    c0 = compile_seconds()
     _reset_peak_rss()
     opts = job.options
     paths = part_paths(job.out_dir, job.name)
@@ -489,6 +492,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         "name": job.name, "index": job.index, "path": job.path, "status": "done", "attempts": job.attempt,
         "points": int(n_own), "buffer_points": int(len(cloud) - n_own), "trees": int(len(m)), "tops": int(owned.sum()),
         "seconds": round(seconds, 3), "points_per_s": round(n_own / max(seconds, 1e-9), 1),
+        "compile_seconds": round(compile_seconds() - c0, 3),   # numba compilations (first run after install)
         "peak_rss_mb": round(_peak_rss_mb(), 1), "pid": os.getpid(), "warnings": warnings,
         "files": files, "checksum": job.checksum,
     }

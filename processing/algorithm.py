@@ -117,9 +117,20 @@ def qgs_parameter(p: S.Param):
     else:  # pragma: no cover - a new kind must be mapped here
         raise ValueError(f"no Processing parameter for kind {k!r}")
     q.setHelp(p.help + S.param_facts(p))
+    if k == S.NUMBER:   # the spin box shows the decimals the values need (2.0, 0.05), not always six
+        q.setMetadata({"widget_wrapper": {"decimals": _decimals(p)}})
     if p.advanced:
         q.setFlags(q.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
     return q
+
+
+def _decimals(p: S.Param) -> int:
+    """Decimals a number's spin box needs to show its default and its bounds exactly (1 to 6)."""
+    def places(v):
+        text = f"{float(v):.6f}".rstrip("0")
+        return len(text.split(".")[1]) if "." in text else 0
+
+    return max([1] + [places(v) for v in (p.default, p.minimum, p.maximum) if v is not None])
 
 
 def to_qgs_crs(crs) -> QgsCoordinateReferenceSystem:
@@ -365,10 +376,13 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
 class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):
     """Loads a .qml of resources/styles into a layer Processing has just loaded (QGIS >= 3.2).
 
-    QGIS does not own post-processors: one instance per style lives in ``_instances`` for good.
+    ``setPostProcessor`` transfers ownership to QGIS, which deletes the post-processor once the layer is
+    loaded: every output gets a new instance (a shared one was gone by the second run of a desktop session:
+    "wrapped C/C++ object of type StyleOnLoad has been deleted"). ``_alive`` keeps the Python side of each
+    instance referenced until QGIS has used it.
     """
 
-    _instances: dict = {}
+    _alive: list = []
 
     def __init__(self, qml: str):
         super().__init__()
@@ -376,9 +390,9 @@ class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):
 
     @classmethod
     def get(cls, style: str) -> "StyleOnLoad":
-        if style not in cls._instances:
-            cls._instances[style] = cls(str(STYLES / style))
-        return cls._instances[style]
+        instance = cls(str(STYLES / style))
+        cls._alive = cls._alive[-200:] + [instance]
+        return instance
 
     def postProcessLayer(self, layer, context, feedback):  # noqa: N802
         message, ok = layer.loadNamedStyle(self.qml)

@@ -51,6 +51,10 @@ if ! grep -qs "^sylva=true" "$QGIS_CUSTOM_CONFIG_PATH/profiles/default/QGIS/QGIS
         || { echo "setup: could not enable the sylva plugin in $QGIS_CUSTOM_CONFIG_PATH" >&2; exit 1; }
 fi
 
+# Compile and cache the numba kernels now, so that the first run is not a minute of silence
+# (plugin/warmup.py; a stamp makes a second set-up skip it in a second).
+.venv/bin/python -m sylva.plugin.warmup --if-needed
+
 if [ "$viewers" = 1 ]; then
     lock="tools/viewers/package-lock.json"
     stamp_v="tools/viewers/node_modules/.sylva-installed"
