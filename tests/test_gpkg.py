@@ -490,6 +490,9 @@ def test_update_adds_and_replaces_layers(tmp_path):
     with closing(sqlite3.connect(path)) as con:
         assert con.execute("SELECT count(*), min(styleName) FROM layer_styles WHERE f_table_name = 'crowns'"
                            ).fetchone() == (1, "crowns")
+    write_gpkg(path, [again], update=True)                             # replaced without a style: none left
+    with closing(sqlite3.connect(path)) as con:
+        assert con.execute("SELECT count(*) FROM layer_styles WHERE f_table_name = 'crowns'").fetchone() == (0,)
     assert validate(path) == ""
     check_rtrees(path)
     write_gpkg(path, second)                                            # update=False: a new file

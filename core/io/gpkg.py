@@ -137,6 +137,8 @@ def write_gpkg(path, tables: Iterable[VectorTable], styles: Optional[Dict[str, s
             con.execute("PRAGMA synchronous = OFF")
             for table in tables:
                 _fill(con, table, spatial_index)
+            if existing and con.execute("SELECT 1 FROM sqlite_master WHERE name = 'layer_styles'").fetchone():
+                con.executemany("DELETE FROM layer_styles WHERE f_table_name = ?", [(t.name,) for t in tables])
             if styles:
                 write_styles(con, {t.name: styles[t.name] for t in tables if styles.get(t.name)})
             con.commit()
@@ -163,7 +165,7 @@ def _check_names(tables: Sequence[VectorTable]) -> None:
 def _is_gpkg(path: Path) -> bool:
     with open(path, "rb") as fh:
         head = fh.read(72)
-    return head[:16] == b"SQLite format 3\x00" and head[68:72] == b"GPKG"
+    return head[:16] == b"SQLite format 3\x00" and head[68:72] in (b"GPKG", b"GP10", b"GP11")
 
 
 def _osr(crs):
