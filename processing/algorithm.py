@@ -316,8 +316,13 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
                 guard.rollback()
             raise
         outputs = dict(result.files)
+        shared = self._shared_geopackages(parameters, context, list(result.vectors))
         for name, table in result.vectors.items():
-            outputs[name] = self._write_sink(parameters, name, table, context, feedback)
+            params = parameters
+            if name in shared:
+                params = dict(parameters)
+                params[name] = _layer_of(parameters[name], shared[name], table)
+            outputs[name] = self._write_sink(params, name, table, context, feedback)
         outputs.update(result.values)
         return outputs
 
@@ -330,6 +335,21 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         if not text or text.startswith(("memory:", "ogr:", "postgres:", "TEMPORARY_OUTPUT")) or "://" in text:
             return None
         return text.split("|", 1)[0]
+
+    def _shared_geopackages(self, parameters, context, names) -> dict:
+        """{output: file} for the sinks of this run that name one plain ``.gpkg`` file.
+
+        QGIS lets each such sink overwrite the file (only the last layer stays);
+        Sylva makes each its own layer of the file instead, as the CLI does.
+        """
+        import os
+
+        files = {}
+        for name in names:
+            dest = self.parameterAsOutputLayer(parameters, name, context) or ""
+            if dest.lower().endswith(".gpkg") and "|" not in dest and not dest.startswith("ogr:"):
+                files.setdefault(os.path.normcase(os.path.abspath(dest)), []).append(name)
+        return {n: path for path, group in files.items() if len(group) > 1 for n in group}
 
     def _write_sink(self, parameters, name, table, context, feedback):
         fields = QgsFields()
@@ -371,6 +391,20 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         """Have QGIS apply ``resources/styles/<style>`` when it loads the output at the end of the run."""
         if style and context.willLoadLayerOnCompletion(dest_id):
             context.layerToLoadOnCompletionDetails(dest_id).setPostProcessor(StyleOnLoad.get(style))
+
+
+def _layer_of(value, path: str, table):
+    """The sink ``value`` redirected to layer ``table.name`` of the GeoPackage ``path`` (loading details kept)."""
+    from qgis.core import QgsProcessingOutputLayerDefinition, QgsProperty
+
+    quoted = path.replace("\\", "\\\\").replace("'", "\\'")
+    geometry = " (geom)" if table.geometry_type != "none" else ""
+    uri = f"ogr:dbname='{quoted}' table=\"{table.name}\"{geometry}"
+    if isinstance(value, QgsProcessingOutputLayerDefinition):
+        value = QgsProcessingOutputLayerDefinition(value)
+        value.sink = QgsProperty.fromValue(uri)
+        return value
+    return uri
 
 
 class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):

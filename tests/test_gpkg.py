@@ -490,6 +490,9 @@ def test_update_adds_and_replaces_layers(tmp_path):
     with closing(sqlite3.connect(path)) as con:
         assert con.execute("SELECT count(*), min(styleName) FROM layer_styles WHERE f_table_name = 'crowns'"
                            ).fetchone() == (1, "crowns")
+    write_gpkg(path, [again], update=True)                             # replaced without a style: none left
+    with closing(sqlite3.connect(path)) as con:
+        assert con.execute("SELECT count(*) FROM layer_styles WHERE f_table_name = 'crowns'").fetchone() == (0,)
     assert validate(path) == ""
     check_rtrees(path)
     write_gpkg(path, second)                                            # update=False: a new file
@@ -593,3 +596,61 @@ def test_an_aborted_merge_is_only_closed(tmp_path):
     merge.abort()
     with closing(sqlite3.connect(tmp_path / "m.gpkg")) as con:
         assert con.execute("SELECT count(*) FROM sqlite_master WHERE name LIKE 'rtree%'").fetchone() == (0,)
+
+
+# --------------------------------------------------------------------------- the sample, as a user runs it
+
+def test_qgis_process_writes_several_sinks_into_one_geopackage(sample_laz, tmp_path):
+    """QGIS itself lets each sink overwrite one plain .gpkg path (only the last layer stayed); Sylva's
+    algorithms make each output a layer of that file."""
+    from conftest import qgis_process
+
+    out = tmp_path / "all.gpkg"
+    run = qgis_process("run", "sylva:segmenttrees", f"--INPUT={sample_laz}", f"--TREES={out}",
+                       f"--TREE_TOPS={out}", f"--CROWNS={out}")
+    assert run.returncode == 0, run.stdout + run.stderr
+    from sylva.core.io.gpkg import layer_names
+
+    assert sorted(layer_names(out)) == ["crowns", "tree_tops", "trees"]
+    assert len(read_gpkg(out, "trees")) == len(read_gpkg(out, "crowns")) > 100
+
+
+@pytest.mark.slow
+def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app):
+    """segmenttrees (four outputs, one file, one named layer with a quote), pipeline (part and forest.gpkg) and
+    exportmodels MODELS_3D through the CLI: 0 validator failures, R-trees used, styles stored; QGIS opens them
+    styled."""
+    from qgis.core import QgsVectorLayer
+
+    from sylva.cli import main
+    from sylva.core.io.gpkg import layer_names
+
+    all_ = tmp_path / "all.gpkg"
+    named = f"{all_}|layername=crown points 'all'"
+    assert main(["--quiet", "segmenttrees", f"--INPUT={sample_laz}", f"--TREES={all_}", f"--TREE_TOPS={all_}",
+                 f"--CROWNS={all_}", f"--CROWN_POINTS={named}"]) == 0
+    assert sorted(layer_names(all_)) == ["crown points 'all'", "crowns", "tree_tops", "trees"]
+    assert main(["--quiet", "pipeline", f"--INPUT={sample_laz}", f"--OUTPUT_FOLDER={tmp_path / 'run'}"]) == 0
+    forest, part = tmp_path / "run" / "forest.gpkg", tmp_path / "run" / "parts" / "sample.gpkg"
+    glb = next((tmp_path / "run" / "models").glob("*.glb"))
+    m3d = tmp_path / "m3d.gpkg"
+    assert main(["--quiet", "exportmodels", f"--INPUT={glb}", f"--MODELS_3D={m3d}"]) == 0
+    styled = {all_: {"crowns", "tree_tops", "crown points 'all'"},
+              forest: {"tree_tops", "crowns", "crown_points", "stem_points", "models_3d"}, part: set(),
+              m3d: {"models_3d"}}
+    for path, want in styled.items():
+        assert validate(path) == "", path
+        check_rtrees(path)
+        with closing(sqlite3.connect(path)) as con:
+            has = con.execute("SELECT 1 FROM sqlite_master WHERE name = 'layer_styles'").fetchone()
+            got = {r[0] for r in con.execute("SELECT f_table_name FROM layer_styles")} if has else set()
+        assert got == want, path
+    assert len(read_gpkg(forest, "models_3d")) == len(read_gpkg(forest, "trees")) > 100
+    layer = QgsVectorLayer(f"{forest}|layername=crowns", "crowns", "ogr")
+    assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "graduatedSymbol"
+    layer = QgsVectorLayer(f"{named}", "points", "ogr")
+    assert layer.isValid() and layer.featureCount() > 10000 and layer.loadDefaultStyle()[1]
+    layer = QgsVectorLayer(f"{m3d}|layername=models_3d", "m", "ogr")
+    assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "singleSymbol"
+    with closing(sqlite3.connect(m3d)) as con:                     # the 3D symbol travels with the file too
+        assert "renderer-3d" in con.execute("SELECT styleQML FROM layer_styles").fetchone()[0]

@@ -137,6 +137,8 @@ def write_gpkg(path, tables: Iterable[VectorTable], styles: Optional[Dict[str, s
             con.execute("PRAGMA synchronous = OFF")
             for table in tables:
                 _fill(con, table, spatial_index)
+            if existing and con.execute("SELECT 1 FROM sqlite_master WHERE name = 'layer_styles'").fetchone():
+                con.executemany("DELETE FROM layer_styles WHERE f_table_name = ?", [(t.name,) for t in tables])
             if styles:
                 write_styles(con, {t.name: styles[t.name] for t in tables if styles.get(t.name)})
             con.commit()
@@ -163,7 +165,7 @@ def _check_names(tables: Sequence[VectorTable]) -> None:
 def _is_gpkg(path: Path) -> bool:
     with open(path, "rb") as fh:
         head = fh.read(72)
-    return head[:16] == b"SQLite format 3\x00" and head[68:72] == b"GPKG"
+    return head[:16] == b"SQLite format 3\x00" and head[68:72] in (b"GPKG", b"GP10", b"GP11")
 
 
 def _osr(crs):
@@ -503,13 +505,15 @@ def add_rtree(con: sqlite3.Connection, table: str, column: str, ids: np.ndarray,
     """The GeoPackage R-tree extension for ``table.column`` (Annex F.3), with GDAL's triggers.
 
     ``ids`` (the rows' fids) and ``bounds`` (n, 4: min_x, max_x, min_y, max_y;
-    NaN rows are left out, as missing and empty geometries are) fill
+    NaN rows are left out, as missing and empty geometries are; float32 ones
+    are taken as already rounded by :func:`outward_float32`) fill
     ``rtree_<table>_<column>`` by :func:`_pack_rtree`.
     """
     rtree = f"rtree_{table}_{column}"
     con.execute(f"CREATE VIRTUAL TABLE {quote(rtree)} USING rtree(id, minx, maxx, miny, maxy)")
     keep = np.isfinite(bounds).all(axis=1)
-    _pack_rtree(con, rtree, np.asarray(ids, dtype=np.int64)[keep], bounds[keep])
+    boxes = bounds[keep] if bounds.dtype == np.float32 else outward_float32(bounds[keep])
+    _pack_rtree(con, rtree, np.asarray(ids, dtype=np.int64)[keep], boxes)
     for suffix, body in _RTREE_TRIGGERS:
         con.execute(f"CREATE TRIGGER {quote(rtree + '_' + suffix)} "
                     + body.format(t=quote(table), g=quote(column), i=quote("fid"), r=quote(rtree)))
@@ -522,8 +526,18 @@ def add_rtree(con: sqlite3.Connection, table: str, column: str, ids: np.ndarray,
 _CELL = np.dtype([("id", ">i8"), ("box", ">f4", (4,))])
 
 
-def _pack_rtree(con: sqlite3.Connection, rtree: str, ids: np.ndarray, bounds: np.ndarray) -> None:
-    """Bulk-load the SQLite R-tree ``rtree`` (created empty) with ``ids`` and their ``bounds``.
+def outward_float32(bounds: np.ndarray) -> np.ndarray:
+    """(n, 4) min_x, max_x, min_y, max_y as float32 rounded outwards, as SQLite's R-tree stores them."""
+    box = bounds.astype(np.float32)
+    for k, toward in ((0, -np.inf), (1, np.inf), (2, -np.inf), (3, np.inf)):
+        v = box[:, k]
+        off = (v > bounds[:, k]) if toward < 0 else (v < bounds[:, k])
+        v[off] = np.nextafter(v[off], np.float32(toward))
+    return box
+
+
+def _pack_rtree(con: sqlite3.Connection, rtree: str, ids: np.ndarray, box: np.ndarray) -> None:
+    """Bulk-load the SQLite R-tree ``rtree`` (created empty) with ``ids`` and their float32 boxes ``box``.
 
     Sort-tile-recursive packing (Leutenegger et al. 1997): entries sorted into
     vertical slices by x centre, by y centre within a slice, and cut into full
@@ -539,12 +553,6 @@ def _pack_rtree(con: sqlite3.Connection, rtree: str, ids: np.ndarray, bounds: np
         return
     (size,) = con.execute(f"SELECT length(data) FROM {quote(rtree + '_node')} WHERE nodeno = 1").fetchone()
     per = (size - 4) // _CELL.itemsize
-    box = np.empty((n, 4), dtype=np.float32)                     # min_x, max_x, min_y, max_y, rounded outwards
-    for k, toward in ((0, -np.inf), (1, np.inf), (2, -np.inf), (3, np.inf)):
-        v = bounds[:, k].astype(np.float32)
-        off = (v > bounds[:, k]) if toward < 0 else (v < bounds[:, k])
-        v[off] = np.nextafter(v[off], np.float32(toward))
-        box[:, k] = v
     entries, boxes = ids, box
     levels = []                                                  # (entries, boxes, node of each entry)
     while True:
@@ -585,12 +593,31 @@ def _pack_rtree(con: sqlite3.Connection, rtree: str, ids: np.ndarray, bounds: np
             parent_rows.extend(zip(cell_ids.tolist(), numbers[lv][node_of].tolist()))
         else:
             leaf = np.argsort(entries, kind="stable")
-            rowid_rows = zip(entries[leaf].tolist(), numbers[0][node_of[leaf]].tolist())
-    q = quote
-    con.execute(f"DELETE FROM {q(rtree + '_node')}")
-    con.executemany(f"INSERT INTO {q(rtree + '_node')} (nodeno, data) VALUES (?, ?)", sorted(node_rows))
-    con.executemany(f"INSERT INTO {q(rtree + '_parent')} (nodeno, parentnode) VALUES (?, ?)", sorted(parent_rows))
-    con.executemany(f"INSERT INTO {q(rtree + '_rowid')} (rowid, nodeno) VALUES (?, ?)", rowid_rows)
+            rowids = [entries[leaf].tolist(), numbers[0][node_of[leaf]].tolist()]
+    con.execute(f"DELETE FROM {quote(rtree + '_node')}")
+    node_rows.sort()
+    parent_rows.sort()
+    _insert_rows(con, rtree + "_node", ["nodeno", "data"], [list(c) for c in zip(*node_rows)], len(node_rows))
+    if parent_rows:
+        _insert_rows(con, rtree + "_parent", ["nodeno", "parentnode"], [list(c) for c in zip(*parent_rows)],
+                     len(parent_rows))
+    _insert_rows(con, rtree + "_rowid", ["rowid", "nodeno"], rowids, n)
+
+
+def read_rtree(con: sqlite3.Connection, schema: str, rtree: str) -> tuple:
+    """(ids, float32 boxes) of every entry of the R-tree ``schema.rtree``, read from its leaf nodes."""
+    leaves = con.execute(f"SELECT data FROM {schema}.{quote(rtree + '_node')} WHERE nodeno IN "
+                         f"(SELECT DISTINCT nodeno FROM {schema}.{quote(rtree + '_rowid')})").fetchall()
+    if not leaves:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4), dtype=np.float32)
+    size = len(leaves[0][0])
+    per = (size - 4) // _CELL.itemsize
+    raw = np.frombuffer(b"".join(d for (d,) in leaves), dtype=np.uint8).reshape(len(leaves), size)
+    counts = raw[:, 2].astype(np.int64) * 256 + raw[:, 3]
+    cells = raw[:, 4:4 + per * _CELL.itemsize].copy().view(_CELL).reshape(len(leaves), per)
+    used = np.arange(per)[None, :] < counts[:, None]
+    cells = cells[used]
+    return cells["id"].astype(np.int64), cells["box"].astype(np.float32)
 
 
 def _str_order(boxes: np.ndarray, per: int) -> np.ndarray:
@@ -666,8 +693,8 @@ class GpkgMerge:
     """Appends GeoPackages written by :func:`write_gpkg` (the pipeline's tile parts) into one new file.
 
     Rows are copied table by table in SQL (``INSERT ... SELECT`` from the
-    attached part, memory-mapped), so memory holds only the R-tree envelopes
-    (16 bytes a feature, computed per part by :func:`blob_bounds`);
+    attached part, memory-mapped), so memory holds only the R-tree boxes
+    (24 bytes a feature, read from each part's R-tree: the workers built them);
     extents are the union of the parts'.  :meth:`add` returns the fid range
     each table's new rows got, which :meth:`remap` takes to rewrite their
     ``tree_id`` values.  :meth:`close` builds the R-trees, writes the styles
@@ -756,9 +783,29 @@ class GpkgMerge:
         (after,) = con.execute(f"SELECT coalesce(max(fid), 0) FROM main.{quote(t)}").fetchone()
         geom = self.geometry.get(t)
         if geom and self.spatial_index and after > before:
-            blobs = [b for (b,) in con.execute(f"SELECT {quote(geom)} FROM part.{quote(t)} ORDER BY fid")]
-            self.bounds.setdefault(t, []).append((before + 1, blob_bounds(blobs).astype(np.float64)))
+            self.bounds.setdefault(t, []).append(self._part_boxes(t, geom, before))
         return {t: (before, after)} if "tree_id" in self.created[t] else {}
+
+    def _part_boxes(self, t: str, geom: str, before: int) -> tuple:
+        """(new fids, float32 boxes) of the part's rows of ``t`` just appended after fid ``before``.
+
+        From the part's own R-tree when it has one and its fids are 1..n (as
+        :func:`write_gpkg` writes them: the new fid is then ``before + fid``),
+        else from its geometry blobs (:func:`blob_bounds`).
+        """
+        con = self.con
+        rtree = f"rtree_{t}_{geom}"
+        lo, hi, n = con.execute(f"SELECT min(fid), max(fid), count(*) FROM part.{quote(t)}").fetchone()
+        indexed = con.execute("SELECT 1 FROM part.gpkg_extensions WHERE table_name = ? AND column_name = ? AND "
+                              "extension_name = 'gpkg_rtree_index'", (t, geom)).fetchone() if con.execute(
+            "SELECT 1 FROM part.sqlite_master WHERE name = 'gpkg_extensions'").fetchone() else None
+        if indexed and lo == 1 and hi == n:
+            ids, boxes = read_rtree(con, "part", rtree)
+            return ids + before, boxes
+        blobs = [b for (b,) in con.execute(f"SELECT {quote(geom)} FROM part.{quote(t)} ORDER BY fid")]
+        bounds = blob_bounds(blobs)
+        keep = np.isfinite(bounds).all(axis=1)
+        return np.arange(before + 1, before + 1 + len(blobs), dtype=np.int64)[keep], outward_float32(bounds[keep])
 
     def remap(self, ranges: Dict[str, tuple], mapping: dict) -> None:
         """Rewrite ``tree_id`` {old: new} in the rows ``ranges`` (what :meth:`add` returned for a part)."""
@@ -785,10 +832,9 @@ class GpkgMerge:
                     if t not in self.created:
                         continue
                     chunks = self.bounds.pop(t, [])
-                    ids = np.concatenate([np.arange(f, f + len(b), dtype=np.int64) for f, b in chunks]
-                                         or [np.zeros(0, dtype=np.int64)])
-                    bounds = np.concatenate([b for _, b in chunks] or [np.zeros((0, 4))])
-                    add_rtree(con, t, geom, ids, bounds)
+                    ids = np.concatenate([i for i, _ in chunks] or [np.zeros(0, dtype=np.int64)])
+                    boxes = np.concatenate([b for _, b in chunks] or [np.zeros((0, 4), dtype=np.float32)])
+                    add_rtree(con, t, geom, ids, boxes)
             for sql in self.triggers.values():
                 con.execute(sql)
             if self.styles:
