@@ -234,6 +234,10 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         for name, table in result.vectors.items():
             outputs[name] = self._write_sink(parameters, name, table, context, feedback)
         outputs.update(result.values)
+        # -- the run's layers (folder outputs Processing does not load itself), styled: processing/outputs.py
+        from .outputs import load_on_completion
+
+        load_on_completion(self.spec.id, result.files, result.values, context)
         return outputs
 
     def _write_sink(self, parameters, name, table, context, feedback):
