@@ -94,3 +94,22 @@ def test_vrt_joins_rasters_and_leaves_nan_to_the_other_source(tmp_path):
     target = aligned_raster((0.0, 0.0, 6.0, 2.0), 1.0)
     paste(target, b)
     assert np.isnan(target.data[:, :3]).all() and (target.data[:, 3:] == 2.0).all()
+
+
+@pytest.mark.parametrize("qml, renderer", [("dtm.qml", "hillshade"), ("chm.qml", "singlebandpseudocolor")])
+def test_raster_styles_load(qgis_app, runs, qml, renderer):
+    from qgis.core import QgsRasterLayer
+
+    from sylva.processing.outputs import StyledOutput
+
+    _, one, _ = runs
+    layer = QgsRasterLayer(one.dtm if qml == "dtm.qml" else one.chm, qml)
+    assert layer.isValid()
+    StyledOutput.get(qml).postProcessLayer(layer, _NoProject(), None)
+    assert layer.renderer().type() == renderer
+
+
+class _NoProject:
+    @staticmethod
+    def project():
+        return None
