@@ -380,28 +380,43 @@ def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
     """The tile's DTM (CRS vertical units, like the models' z) and CHM (metres above ground) GeoTIFFs
     over its own bounds, from its buffered, normalised cloud (Sylva, not in a paper).
 
-    The DTM is the TIN of the same ground points and options that gave the
-    heights (:func:`sylva.core.terrain.ground_elevation`), sampled at the cell
-    centres of a grid aligned on multiples of the pixel, so neighbouring tiles
-    abut; the CHM is the highest first return per cell
+    The DTM is the ground surface that gave the heights (the TIN of
+    :func:`sylva.core.terrain.normalize`): each point's ``z - height`` averaged
+    per cell (the TIN is linear within a cell, so this is its value there to a
+    few cm; no second triangulation), cells without points filled from the
+    nearest one, on a grid aligned on multiples of the pixel, so neighbouring
+    tiles abut; the CHM is the highest first return per cell
     (:func:`sylva.core.terrain.canopy_height_model`, not pit-free: it is cheap)
     pasted on the same kind of grid, its empty cells given the highest of their
     neighbours twice (:func:`_fill_gaps`).  Returns {"dtm": path, "chm": path}.
     """
-    from .raster import aligned_raster, paste, write_geotiff
-    from .terrain import canopy_height_model, ground_elevation
+    from scipy import ndimage
 
-    opts = job.options
+    from .raster import aligned_raster, paste, write_geotiff
+    from .terrain import canopy_height_model
+
     hm, vm = work.units.horizontal_m, work.units.vertical_m
-    dtm = aligned_raster(job.bounds, DTM_PIXEL_M / hm, work.crs)
-    cx, cy = dtm.cell_centres()
-    local = (np.column_stack([cx.ravel(), cy.ravel()]) - work.origin[:2]) * hm
-    z = ground_elevation(work, local, method="tin", cell_m=opts.ground_cell_m, tin_radius_m=opts.buffer_m / 2)
-    dtm.data[:] = (z / vm + work.origin[2]).reshape(dtm.shape)
     pad = 2 * CHM_PIXEL_M / hm
     xmin, ymin, xmax, ymax = job.bounds
     near = ((work.xyz[:, 0] >= xmin - pad) & (work.xyz[:, 0] <= xmax + pad)
             & (work.xyz[:, 1] >= ymin - pad) & (work.xyz[:, 1] <= ymax + pad))
+    # DTM: every point's ground elevation (z minus its height: the TIN under it) averaged per cell, which
+    # is the TIN at the cell (linear within it); cells without points take their nearest cell's value.
+    dtm = aligned_raster(job.bounds, DTM_PIXEL_M / hm, work.crs)
+    xyz = work.xyz[near]
+    ground = xyz[:, 2] - np.asarray(work.attrs["height"], dtype=np.float64)[near] / vm
+    row, col = dtm.index_of(xyz[:, 0], xyz[:, 1])
+    inside = dtm.inside(row, col)
+    if inside.any():
+        cell = row[inside] * dtm.cols + col[inside]
+        total = np.bincount(cell, ground[inside], minlength=dtm.rows * dtm.cols)
+        count = np.bincount(cell, minlength=dtm.rows * dtm.cols)
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(dtm.shape)
+        empty = np.isnan(mean)
+        if empty.any():
+            _, (ri, ci) = ndimage.distance_transform_edt(empty, return_indices=True)
+            mean = mean[ri, ci]
+        dtm.data[:] = mean
     chm = aligned_raster(job.bounds, CHM_PIXEL_M / hm, work.crs)
     if near.any():
         try:
