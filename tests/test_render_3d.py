@@ -28,3 +28,39 @@ def test_tree_pixels_are_the_bark_colour_not_the_maps():
                     dtype=np.uint8)
     assert render_3d.tree_pixels(bark).all()
     assert not render_3d.tree_pixels(maps).any()
+
+
+def test_3d_style_stands_models_without_base_z_on_their_lowest_point(qgis_app):
+    """models_3d.qml's height is -base_z, or minus the lowest vertex when a layer has no base_z."""
+    from qgis._3d import Qgs3D, QgsPolygon3DSymbol, QgsVectorLayer3DRenderer
+    from qgis.core import (QgsApplication, QgsExpressionContext, QgsExpressionContextUtils, QgsFeature,
+                           QgsGeometry, QgsVectorLayer)
+    from qgis.PyQt import sip
+
+    if QgsApplication.renderer3DRegistry().rendererMetadata("vector") is None:
+        Qgs3D.initialize()   # the desktop does it at start; a bare QgsApplication does not
+
+    from sylva.processing.outputs import StyledOutput
+
+    for fields, base in (("&field=base_z:double", 250.0), ("", None)):
+        layer = QgsVectorLayer(f"MultiPolygonZ?crs=EPSG:32632{fields}", "m", "memory")
+        feature = QgsFeature(layer.fields())
+        feature.setGeometry(QgsGeometry.fromWkt(
+            "MultiPolygonZ(((0 0 251, 1 0 251, 0 1 270, 0 0 251)))"))
+        if base is not None:
+            feature.setAttributes([base])
+        layer.dataProvider().addFeatures([feature])
+        StyledOutput.get("models_3d.qml").postProcessLayer(layer, _NoProject(), None)
+        renderer = sip.cast(layer.renderer3D(), QgsVectorLayer3DRenderer)
+        prop = sip.cast(renderer.symbol(), QgsPolygon3DSymbol).dataDefinedProperties().property(
+            QgsPolygon3DSymbol.PropertyHeight)
+        context = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+        context.setFeature(next(layer.getFeatures()))
+        value, ok = prop.valueAsDouble(context, 0.0)
+        assert ok and value == (-250.0 if base is not None else -251.0)
+
+
+class _NoProject:
+    @staticmethod
+    def project():
+        return None

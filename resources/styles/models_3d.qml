@@ -19,7 +19,7 @@
           <Option type="Map" name="properties">
             <Option type="Map" name="height">
               <Option type="bool" value="true" name="active"/>
-              <Option type="QString" value="-&quot;base_z&quot;" name="expression"/>
+              <Option type="QString" value="-coalesce(attribute('base_z'), z_min($geometry))" name="expression"/>
               <Option type="int" value="3" name="type"/>
             </Option>
           </Option>
