@@ -55,6 +55,9 @@ def run(args: dict, feedback: Feedback) -> Result:
     result.files["OUTPUT_FOLDER"] = str(out)
     if report.gpkg:
         result.values["GEOPACKAGE"] = report.gpkg
+    for name, path in (("DTM", report.dtm), ("CHM", report.chm)):   # dtm.vrt (the 3D view's terrain), chm.vrt
+        if path:
+            result.files[name] = path
     return result
 
 

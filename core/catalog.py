@@ -585,6 +585,8 @@ class RunReport:
     gpkg: Optional[str]
     tileset: Optional[str]
     compile_seconds: float = 0.0   # of ``seconds``: compiling the numba kernels (a first run after installing)
+    dtm: Optional[str] = None        # dtm.vrt: the tiles' terrain (CRS vertical units), QGIS's 3D terrain
+    chm: Optional[str] = None        # chm.vrt: the tiles' canopy height model (m)
 
     @property
     def points_per_s(self) -> float:
@@ -633,6 +635,17 @@ def _compile_seconds(done, skipped, c0: float) -> float:
         if r["name"] not in skipped and r.get("pid") != pid:
             per_worker[r.get("pid")] = per_worker.get(r.get("pid"), 0.0) + float(r.get("compile_seconds", 0.0))
     return here + max(per_worker.values(), default=0.0)   # workers compile side by side: the longest one
+
+
+def _write_mosaics(out: Path, records) -> Dict[str, Optional[str]]:
+    """dtm.vrt and chm.vrt of the tiles' rasters (tiles of a run made before Sylva wrote them have none)."""
+    from .raster import write_vrt
+
+    found = {}
+    for kind in ("dtm", "chm"):
+        tiffs = [r["files"][kind] for r in records if Path(r.get("files", {}).get(kind, "")).is_file()]
+        found[kind] = str(write_vrt(out / f"{kind}.vrt", tiffs)) if tiffs else None
+    return found
 
 
 def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), workers: int = 1,
@@ -886,6 +899,7 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
     shutil.rmtree(out / "parts" / "halo", ignore_errors=True)  # scratch: a rerun makes what it needs
     tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
     root = write_root_tileset(out / "models", tilesets) if tilesets else None
+    mosaics = _write_mosaics(out, done)
     peaks: Dict[str, float] = {}
     for r in done:
         if r["name"] in skipped:
@@ -898,7 +912,7 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
         workers=int(workers), scheduler=None if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
         peak_rss_mb_per_worker=peaks, id_collisions_rewritten=len(maps),
         gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root),
-        compile_seconds=round(_compile_seconds(done, skipped, c0), 3))
+        compile_seconds=round(_compile_seconds(done, skipped, c0), 3), **mosaics)
     atomic_write_bytes(out / "report.json", (json.dumps(result.as_dict(), indent=1, default=str) + "\n").encode())
     atomic_write_bytes(out / "report.txt", result.summary().encode("utf-8"))
     report(progress, 1.0, f"{result.trees} trees")

@@ -324,6 +324,10 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
                 params[name] = _layer_of(parameters[name], shared[name], table)
             outputs[name] = self._write_sink(params, name, table, context, feedback)
         outputs.update(result.values)
+        # -- the run's layers (folder outputs Processing does not load itself), styled: processing/outputs.py
+        from .outputs import load_on_completion
+
+        load_on_completion(self.spec.id, result.files, result.values, context)
         return outputs
 
     def _sink_path(self, parameters, name, context):
