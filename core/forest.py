@@ -326,7 +326,9 @@ def _fitted_wood(dense, base_local: np.ndarray, lod: int):
     from .reconstruct.levelset import tube_mesh
 
     sides = {0: 8, 1: 10}.get(int(lod), 14)
-    v, f = tube_mesh(dense.curves, dense.curve_radii, sides=sides, twig_sides=max(4, sides // 2 + 1))
+    curves, radii = ((dense.curves, dense.curve_radii) if dense.mesh_curves is None
+                     else (dense.mesh_curves, dense.mesh_radii))
+    v, f = tube_mesh(curves, radii, sides=sides, twig_sides=max(4, sides // 2 + 1))
     return trimesh.Trimesh(v - base_local, f, process=False)
 
 

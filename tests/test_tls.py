@@ -37,7 +37,7 @@ def _surface_distance(points, v, f):
 def test_level_set_model_fits_known_cylinders():
     truth, pts = _tree()
     dm = LevelSetQSM().model(TreePoints(1, pts, 0.0))
-    v, f = tube_mesh(dm.curves, dm.curve_radii)
+    v, f = tube_mesh(dm.mesh_curves, dm.mesh_radii)
     d = _surface_distance(pts, v, f)
     assert d.mean() < 0.01, d.mean()                     # points within a centimetre of the wood
     cyl = dm.cylinders
@@ -104,5 +104,5 @@ def test_wide_cloud_without_treeid_says_what_to_do(tmp_path, capsys):
 def test_tls_tree7_default_model_is_close_to_the_points(tmp_path):
     xyz = np.loadtxt(TLS / "tree7.xyz")
     dm = LevelSetQSM().model(TreePoints(1, xyz, float(xyz[:, 2].min())))
-    v, f = tube_mesh(dm.curves, dm.curve_radii)
+    v, f = tube_mesh(dm.mesh_curves, dm.mesh_radii)
     assert _surface_distance(xyz, v, f).mean() < 0.012     # AdTree: 1.68 cm (issue 18)

@@ -39,7 +39,7 @@ components; bincount sums): ~0.1–0.3 s for 10,000–20,000 points.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
@@ -71,8 +71,11 @@ class LevelSetQSM:
 
     k: int = 10
     bin_m: float = 0.0
-    bin_spacing: float = 0.25
+    bin_spacing: float = 2.0
     min_bin_m: float = 0.02
+    adaptive: float = 0.6
+    fine_spacing: float = 0.25
+    thick_m: float = 0.04
     max_bin_m: float = 0.5
     root_m: float = 0.1
     merge_spacing: float = 0.0
@@ -110,9 +113,25 @@ class LevelSetQSM:
             flags.append("thinned")
         check(cancelled)
         nodes = level_set_nodes(xyz, self)
+        mesh_curves = mesh_radii = None
+        if self.adaptive > 0 and self.bin_m <= 0:
+            # two scales: the coarse level's radii set the bin width of every point (the structure and
+            # the QSM: wide bins on thick stems keep each cross-section whole), and a fine level with
+            # narrow bins everywhere follows the twigs (the mesh, where the structure's stems are thin)
+            coarse = nodes
+            r = coarse["radius"][np.maximum(coarse["label"], 0)]
+            r = np.where(coarse["label"] >= 0, r, np.median(coarse["radius"]))
+            fine = float(np.clip(self.fine_spacing * coarse["spacing"], self.min_bin_m, self.max_bin_m))
+            width = np.clip(self.adaptive * r, fine, max(coarse["bin_m"], fine))
+            nodes = level_set_nodes(xyz, self, width=width, prep=coarse["prep"])
+            nodes["bin_m"] = fine
+            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"])
+            fc, fr, _, _, _, _ = _branches(fn, ground_z)
+            mesh_curves, mesh_radii = simplify_lines(fc, fr)
         report(progress, 0.6, "level sets")
         check(cancelled)
-        curves, radii, bparent, border, skel = _branches(nodes, ground_z)
+        curves, radii, bparent, border, skel, _ = _branches(nodes, ground_z)
+        curves, radii, bparent, border = prune_stubs(curves, radii, bparent, border, 3 * nodes["bin_m"])
         curves, radii = simplify_lines(curves, radii)
         cyl = line_cylinders(curves, radii, bparent, border)
         stats = {"n_points": int(len(tree.xyz)), "n_nodes": int(len(skel)), "n_branches": len(curves),
@@ -123,7 +142,10 @@ class LevelSetQSM:
         visited = float(nodes["n_used"]) / max(len(xyz), 1)
         rec = Reconstruction(skel, self.name, visited, nodes["n_bridges"] == 0, stats, flags, tree.tree_id)
         report(progress, 1.0, "model")
-        return DenseModel(rec, None, None, curves, radii, bparent, border, cyl)
+        dm = DenseModel(rec, None, None, curves, radii, bparent, border, cyl)
+        if mesh_curves is not None:
+            dm.mesh_curves, dm.mesh_radii = mesh_curves, mesh_radii
+        return dm
 
     def reconstruct(self, tree: TreePoints, progress: Progress = None, cancelled: CancelCheck = None):
         return self.model(tree, progress, cancelled).reconstruction
@@ -188,30 +210,48 @@ def _bridge(xyz: np.ndarray, g: sparse.csr_matrix, root: int, min_component: int
     return g, used, n_bridges
 
 
-def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM()) -> dict:
+def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=None, prep=None) -> dict:
     """The level-set nodes of a tree's points: centres, radii, parents (see the module docstring).
 
-    Returns a dict: ``centre`` (m, 3), ``radius`` (m,), ``parent`` (m,) (-1 for the root, parents
-    first), ``count`` points per node, ``tip`` (m, 3) the farthest point of each node along its axis,
-    ``fitted`` (m,) True where a circle was fitted, ``label`` per point its node (-1 unused), and
-    ``bin_m``, ``spacing``, ``n_used``, ``n_bridges``.
+    ``width`` (n,) optional bin width per point (m): the geodesic distance is then measured in local
+    bin widths (every edge's length divided by the mean width of its ends) and binned by 1, so bins are
+    wide on thick stems and narrow on twigs.  ``prep`` the ``prep`` of an earlier call on the same points
+    (graph, spacing, used mask, bridges).  Returns a dict: ``centre`` (m, 3), ``radius`` (m,), ``parent``
+    (m,) (-1 for the root, parents first), ``count`` points per node, ``tip`` (m, 3) the farthest point of
+    each node along its axis, ``fitted`` (m,) True where a circle was fitted, ``label`` per point its node
+    (-1 unused), and ``bin_m``, ``spacing``, ``n_used``, ``n_bridges``, ``prep``.
     """
     n = len(xyz)
-    g, spacing = _graph(xyz, opt.k)
-    bin_m = opt.bin_m if opt.bin_m > 0 else float(np.clip(opt.bin_spacing * spacing, opt.min_bin_m, opt.max_bin_m))
     root = int(np.argmin(xyz[:, 2]))
-    g, used, n_bridges = _bridge(xyz, g, root, opt.min_component)
+    if prep is None:
+        g, spacing = _graph(xyz, opt.k)
+        g, used, n_bridges = _bridge(xyz, g, root, opt.min_component)
+        prep = (g, spacing, used, n_bridges)
+    g, spacing, used, n_bridges = prep
+    if width is None:
+        bin_m = opt.bin_m if opt.bin_m > 0 else float(np.clip(opt.bin_spacing * spacing, opt.min_bin_m,
+                                                              opt.max_bin_m))
+        gw, unit, src_m = g, bin_m, bin_m
+    else:
+        width = np.asarray(width, dtype=np.float64)
+        coo = g.tocoo()
+        gw = sparse.csr_matrix((coo.data / (0.5 * (width[coo.row] + width[coo.col])), (coo.row, coo.col)),
+                               shape=g.shape)
+        bin_m, unit, src_m = float(np.median(width)), 1.0, float(np.median(width))
     z0 = xyz[root, 2]
-    src = np.flatnonzero(used & (xyz[:, 2] <= z0 + max(opt.root_m, bin_m / 2)))
-    dist, pred, _ = csgraph.dijkstra(g, directed=False, indices=src, min_only=True, return_predecessors=True)
+    src = np.flatnonzero(used & (xyz[:, 2] <= z0 + max(opt.root_m, src_m / 2)))
+    dist, pred, _ = csgraph.dijkstra(gw, directed=False, indices=src, min_only=True, return_predecessors=True)
+    dist = dist / unit
+    bin_m_real = bin_m
+    bin_m = 1.0
     reach = np.isfinite(dist) & used
-    b = np.where(reach, np.floor(dist / bin_m), -1).astype(np.int64)
+    b = np.where(reach, np.floor(dist), -1).astype(np.int64)
     # pieces of each bin: components of the graph restricted to edges inside one bin
     # (the graph's edges, and links to the 16 nearest points within ``merge_spacing`` point spacings or a
     # bin: a thick stem cut into bins narrower than its point spacing stays one ring per bin)
     coo = g.tocoo()
     kk = min(16, n - 1)
-    dq, nq = cKDTree(xyz).query(xyz, k=kk + 1, distance_upper_bound=max(opt.merge_spacing * spacing, bin_m),
+    dq, nq = cKDTree(xyz).query(xyz, k=kk + 1, distance_upper_bound=max(opt.merge_spacing * spacing, bin_m_real),
                                 workers=-1)
     qi = np.repeat(np.arange(n), kk)
     qj = nq[:, 1:].ravel()
@@ -250,7 +290,8 @@ def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM()) -> dict:
     np.maximum.at(far, lab[ok], proj)
     tip = centre + axis * np.maximum(far, 0)[:, None]
     return dict(centre=centre, radius=radius, parent=parent, count=cnt, tip=tip, fitted=fitted, axis=axis,
-                label=lab, z_min=float(z0), bin_m=bin_m, spacing=spacing, n_used=int(ok.sum()), n_bridges=n_bridges)
+                label=lab, z_min=float(z0), bin_m=bin_m_real, spacing=spacing, n_used=int(ok.sum()),
+                n_bridges=n_bridges, prep=prep)
 
 
 def _group_argmin(values, labels, n):
@@ -465,7 +506,61 @@ def _branches(nodes: dict, ground_z: float):
     sk_parent = np.r_[-1, np.where(parent >= 0, parent + 1, 0)]
     sk_radius = np.r_[radius[0], radius]
     skel = Skeleton(sk_nodes, sk_parent, sk_radius)
-    return curves, radii, np.array(chain_parent, dtype=np.int64), order, skel
+    return curves, radii, np.array(chain_parent, dtype=np.int64), order, skel, chains
+
+
+def prune_stubs(curves, radii, bparent, border, slack_m: float, factor: float = 3.0, passes: int = 3):
+    """Branches without children that stay within ``factor`` parent radii + ``slack_m`` of the parent's
+    centre line (a bump, or a second chain up the other side of the parent) are bumps of the parent's surface, not branches: left out of the structure
+    (TreeQSM-like; Sylva, not in the papers).  Returns the kept (curves, radii, parents, orders)."""
+    bp = np.asarray(bparent, dtype=np.int64).copy()
+    keep = np.ones(len(curves), dtype=bool)
+    for _ in range(passes):
+        has_child = np.zeros(len(curves), dtype=bool)
+        live = keep & (bp >= 0)
+        has_child[bp[live]] = True
+        drop = []
+        for b in np.flatnonzero(keep & ~has_child & (bp >= 0)):
+            # the farthest the branch gets from its parent's centre line (its vertices, densely sampled)
+            par = curves[bp[b]]
+            reach = float(np.min(np.linalg.norm(curves[b][:, None] - par[None], axis=2), axis=1).max())
+            if reach <= factor * float(radii[bp[b]].max()) + slack_m:
+                drop.append(b)
+        if not drop:
+            break
+        keep[drop] = False
+    idx = np.flatnonzero(keep)
+    new = np.full(len(curves), -1, dtype=np.int64)
+    new[idx] = np.arange(len(idx))
+    return ([curves[i] for i in idx], [radii[i] for i in idx], np.where(bp[idx] >= 0, new[np.maximum(bp[idx], 0)], -1),
+            np.asarray(border)[idx])
+
+
+def _composite(structure: dict, fine: dict, ground_z: float, thick_m: float):
+    """Mesh centre lines: the structure's stems while they are at least ``thick_m`` thick, and the fine
+    level's branches whose points are mostly not on those thick stems (Sylva)."""
+    sc, sr, _, _, _, schains = _branches(structure, ground_z)
+    fc, fr, _, _, _, fchains = _branches(fine, ground_z)
+    thick_node = structure["radius"] >= thick_m
+    lab = structure["label"]
+    thick_pt = np.where(lab >= 0, thick_node[np.maximum(lab, 0)], False)
+    flab = fine["label"]
+    m = len(fine["centre"])
+    ok = flab >= 0
+    share = np.bincount(flab[ok], weights=thick_pt[ok].astype(float), minlength=m) / np.maximum(
+        np.bincount(flab[ok], minlength=m), 1)
+    curves, radii = [], []
+    for c, r, ch in zip(sc, sr, schains):
+        # curve = [start] + chain nodes (+ tip): keep the start and the leading thick nodes
+        keep = 1 + int(np.argmin(np.r_[thick_node[ch], False]))
+        if keep >= 2:
+            curves.append(c[:keep + (1 if keep == len(ch) + 1 and len(c) > keep else 0)])
+            radii.append(r[:len(curves[-1])])
+    for c, r, ch in zip(fc, fr, fchains):
+        if share[ch].mean() < 0.5:
+            curves.append(c)
+            radii.append(r)
+    return simplify_lines(curves, radii)
 
 
 def simplify_lines(curves, radii, tolerance_m: float = 0.003, rel: float = 0.25, passes: int = 4):
