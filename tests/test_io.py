@@ -551,7 +551,7 @@ def test_read_xyz_bad_input(tmp_path):
     with pytest.raises(InputError, match=r"nothere\.xyz: file not found"):
         read_xyz(tmp_path / "nothere.xyz")
     with pytest.raises(InputError, match=r"cloud\.ply.*unknown point-cloud type"):
-        read_cloud(tmp_path / "cloud.ply")
+        read_cloud(tmp_path / "cloud.e57")
 
 
 # ------------------------------------------------------------------ bad input

@@ -106,3 +106,27 @@ def test_tls_tree7_default_model_is_close_to_the_points(tmp_path):
     dm = LevelSetQSM().model(TreePoints(1, xyz, float(xyz[:, 2].min())))
     v, f = tube_mesh(dm.mesh_curves, dm.mesh_radii)
     assert _surface_distance(xyz, v, f).mean() < 0.012     # AdTree: 1.68 cm (issue 18)
+
+
+def test_ply_point_clouds_are_read(tmp_path):
+    import trimesh
+
+    from sylva.core.errors import InputError
+    from sylva.core.io import read_cloud
+
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(-2, 2, (500, 3))
+    rgb = rng.integers(0, 256, (500, 4), dtype=np.uint8)
+    rgb[:, 3] = 255
+    path = tmp_path / "scan.ply"
+    trimesh.PointCloud(xyz, colors=rgb).export(str(path))          # binary little endian
+    cloud = read_cloud(path)
+    assert cloud.crs is None and len(cloud) == 500
+    assert cloud.xyz == pytest.approx(xyz, abs=1e-6)                 # float32 vertices in the file
+    assert cloud.attrs["red"].dtype == np.uint16 and (cloud.attrs["red"] == rgb[:, 0] * 257).all()
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"not a ply")
+    with pytest.raises(InputError, match="not a PLY file"):
+        read_cloud(bad)
+    with pytest.raises(InputError, match="file not found"):
+        read_cloud(tmp_path / "missing.ply")
