@@ -16,7 +16,7 @@ from typing import List, Optional
 
 from .algorithms import all_algorithms, get
 from .algorithms import spec as S
-from .core.errors import InputError, SylvaError
+from .core.errors import InputError, SylvaError, disk_error
 
 
 class CliFeedback(S.Feedback):
@@ -87,16 +87,24 @@ def _help(p: S.Param) -> str:
     return text + (" (optional)" if p.optional else " (required)")
 
 
-def convert(alg: S.Algorithm, raw: dict) -> dict:
-    """Turn command-line strings into the typed values ``run`` expects (defaults filled in)."""
+def convert(alg: S.Algorithm, raw: dict, scratch: Optional[list] = None) -> dict:
+    """Turn command-line strings into the typed values ``run`` expects (defaults filled in).
+
+    A required output left out goes to a temporary folder (made once, appended to
+    ``scratch``: :func:`main` removes it when the command ends, as qgis_process does
+    with TEMPORARY_OUTPUT).
+    """
     args = {}
+    scratch = [] if scratch is None else scratch
     for p in alg.params:
         value = raw.get(p.name)
         if value is None:
             if p.is_output and p.optional:
                 value = None  # an optional output left out is not written
             elif p.is_output:
-                value = str(Path(tempfile.mkdtemp(prefix="sylva-")) / f"{p.name.lower()}{p.default_extension()}")
+                if not scratch:
+                    scratch.append(tempfile.mkdtemp(prefix="sylva-"))
+                value = str(Path(scratch[0]) / f"{p.name.lower()}{p.default_extension()}")
             elif p.default is None and not p.optional:
                 raise InputError(f"{alg.id}: parameter --{p.name} ({p.description}) is required")
             else:
@@ -146,19 +154,64 @@ def _vector(alg: S.Algorithm, p: S.Param, value: str):
 
 
 def write_outputs(alg: S.Algorithm, args: dict, result: S.Result) -> dict:
-    """Write vector tables to GeoPackages; return every output's path."""
-    from .core.io.gpkg import write_gpkg
+    """Write vector tables to GeoPackages (with their QGIS styles); return every output's path.
+
+    Outputs naming the same file become layers of that one GeoPackage
+    (``--TREES=all.gpkg --CROWNS=all.gpkg``); ``file.gpkg|layername=NAME``
+    names the layer and keeps the file's other layers, as QGIS does.
+    """
+    from dataclasses import replace
+
+    from .core.io.gpkg import split_source, write_gpkg
 
     paths = dict(result.files)
+    files: dict = {}                                   # resolved path -> (path, [(param, table, style)], update)
     for name, table in result.vectors.items():
         if not args.get(name):
             continue
-        path = Path(args[name])
+        file, layer = split_source(args[name])
+        path = Path(file)
         if path.suffix.lower() != ".gpkg":
             raise InputError(f"{path}: the command line writes vector outputs as GeoPackage (.gpkg) files")
-        write_gpkg(path, [_rounded(table)])
-        paths[name] = str(path)
+        if layer is not None:
+            if not layer:
+                raise InputError(f"--{name}={args[name]}: the layer name after layername= is empty")
+            table = replace(table, name=layer)
+        entry = files.setdefault(path.resolve(), (path, [], [False]))
+        entry[1].append((name, table, alg.param(name).style))
+        entry[2][0] = entry[2][0] or layer is not None
+    for path, items, update in files.values():
+        seen = {}
+        for name, table, _ in items:
+            other = seen.setdefault(table.name.lower(), name)
+            if other != name:
+                raise InputError(f"--{other} and --{name} both write layer {table.name!r} of {path}; "
+                                 f"name them apart with {path}|layername=NAME")
+        try:
+            write_gpkg(path, [_rounded(t) for _, t, _ in items], styles={t.name: s for _, t, s in items if s},
+                       update=update[0])
+        except OSError as err:
+            raise disk_error(path, err) from None
+        for name, table, _ in items:
+            paths[name] = f"{path}|layername={table.name}" if len(items) > 1 or update[0] else str(path)
     return paths
+
+
+class _Terminated(BaseException):
+    """SIGTERM (or SIGHUP) arrived: unwinds like Ctrl-C, so every temporary file is removed."""
+
+
+_SIGNALLED = {"signal": None}   # the last SIGINT/SIGTERM main() received
+
+
+def _on_signal(signum, frame):
+    _SIGNALLED["signal"] = signum
+    raise _Terminated(signum)
+
+
+def _on_interrupt(signum, frame):
+    _SIGNALLED["signal"] = signum
+    raise KeyboardInterrupt
 
 
 def _rounded(table):
@@ -172,30 +225,100 @@ def _rounded(table):
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0].startswith("sylva:"):
-        argv[0] = argv[0].split(":", 1)[1]
-    parser = _parser()
-    ns = parser.parse_args(argv)
-    if not ns.algorithm:
-        parser.print_help()
-        return 2
-    alg = get(ns.algorithm)
-    feedback = CliFeedback(ns.quiet)
+    """Run one algorithm; every SylvaError (and Ctrl-C, SIGTERM, a full disk) is one line on stderr.
+
+    Exit codes: 0 done, 1 error, 2 usage, 130 cancelled (Ctrl-C), 143 terminated (SIGTERM).
+    """
+    import signal
+
+    name = "sylva"
+    scratch: list = []
+    previous = {}
+    _SIGNALLED["signal"] = None
     try:
-        args = convert(alg, vars(ns))
+        for sig, handler in ((signal.SIGTERM, _on_signal), (getattr(signal, "SIGHUP", None), _on_signal),
+                             (signal.SIGINT, _on_interrupt)):
+            if sig is not None:
+                try:
+                    previous[sig] = signal.signal(sig, handler)
+                except (ValueError, OSError):  # not the main thread
+                    pass
+        # numpy first, on its own: a Ctrl-C while it loads is then its (silent) ImportError, caught
+        # below, and not a C extension built on it printing the failed import (numpy's import_array)
+        import numpy  # noqa: F401
+
+        argv = list(sys.argv[1:] if argv is None else argv)
+        if argv and argv[0].startswith("sylva:"):
+            argv[0] = argv[0].split(":", 1)[1]
+        parser = _parser()
+        ns = parser.parse_args(argv)
+        if not ns.algorithm:
+            parser.print_help()
+            return 2
+        alg = get(ns.algorithm)
+        name = f"sylva {alg.id}"
+        return _run(alg, ns, scratch)
+    except KeyboardInterrupt:
+        print(f"\n{name}: cancelled", file=sys.stderr)
+        return 130
+    except _Terminated:
+        print(f"\n{name}: terminated", file=sys.stderr)
+        return 143
+    except SylvaError as exc:
+        print(f"\n{name}: error: {_one_line(exc)}", file=sys.stderr)
+        return 1
+    except Exception:
+        # a library turned the Ctrl-C or SIGTERM that interrupted its import into an ImportError
+        # (numpy does): the user cancelled, this is no bug
+        if _SIGNALLED["signal"] == signal.SIGINT:
+            print(f"\n{name}: cancelled", file=sys.stderr)
+            return 130
+        if _SIGNALLED["signal"] is not None:
+            print(f"\n{name}: terminated", file=sys.stderr)
+            return 143
+        raise
+    finally:
+        import shutil
+
+        for folder in scratch:
+            shutil.rmtree(folder, ignore_errors=True)
+        for sig, handler in previous.items():
+            try:
+                signal.signal(sig, handler)
+            except (ValueError, OSError, TypeError):
+                pass
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _run(alg: S.Algorithm, ns, scratch: list) -> int:
+    from .algorithms.common import OutputGuard, check_paths
+
+    feedback = CliFeedback(ns.quiet)
+    raw = vars(ns)
+    check_paths(alg, raw, raw=raw)       # before reading anything: the paths as given
+    args = convert(alg, raw, scratch)
+    check_paths(alg, args, raw=raw)       # again with the temporary outputs filled in
+    guard = OutputGuard(alg, args)
+    try:
         result = alg.run(args, feedback)
         paths = write_outputs(alg, args, result)
-    except KeyboardInterrupt:
-        print("\nsylva: cancelled", file=sys.stderr)
-        return 130
-    except SylvaError as exc:
-        print(f"\nsylva {alg.id}: error: {exc}", file=sys.stderr)
-        return 1
-    for name, path in paths.items():
-        print(f"{name}: {path}")
-    for name, value in result.values.items():
-        print(f"{name}: {value}")
+    except OSError as err:
+        guard.rollback()
+        raise disk_error(err.filename or guard.describe(), err) from None
+    except BaseException:
+        guard.rollback()
+        raise
+    kept = {str(Path(f)) for f in scratch}
+    for key, path in paths.items():
+        if any(str(path).startswith(k) for k in kept):
+            print(f"{key}: not kept (a temporary file; give --{key}=PATH to keep it)")
+        else:
+            print(f"{key}: {path}")
+    for key, value in result.values.items():
+        print(f"{key}: {value}")
     return 0
 
 

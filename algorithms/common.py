@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 from ..core.errors import CRSError, InputError
 from .spec import CRS, FILE, Feedback, Param
@@ -120,7 +121,219 @@ def load_segmented(args: dict, feedback: Feedback):
     if cloud.attr("height") is None:
         feedback.progress(0.02, "height above ground")
         cloud = normalize(cloud)
-    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    from ..core.io.las import tree_labels
+
+    labels = tree_labels(cloud.attrs["treeID"])
     if not (labels > 0).any():
         raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
     return cloud, labels
+
+
+# --------------------------------------------------------------------------- output paths
+# (Sylva, not in the papers.) Checked once, before any computation, by both front ends
+# (cli.main and processing.algorithm.SylvaAlgorithm.processAlgorithm): an output may never
+# equal, hold or lie inside an input, and its extension must name the format written.
+
+def _suffixes(p) -> tuple:
+    """The extensions an output parameter may have (lower case, with the dot); () = any."""
+    from . import spec as S
+
+    if p.kind == S.RASTER_OUT:
+        return (".tif", ".tiff")
+    if p.kind == S.FILE_OUT:
+        import re
+
+        found = tuple(dict.fromkeys("." + e.lower() for e in re.findall(r"\*\.([A-Za-z0-9]+)", p.file_filter)))
+        return found
+    return ()
+
+
+def _real(path: str) -> Path:
+    import os
+
+    return Path(os.path.realpath(os.path.expanduser(str(path).split("|", 1)[0])))
+
+
+def _input_paths(alg, args: dict, raw: dict) -> list:
+    """(parameter name, real path) of every input file or folder of a run."""
+    from . import spec as S
+
+    out = []
+    for p in alg.inputs:
+        value = raw.get(p.name) if p.kind == S.VECTOR else args.get(p.name)
+        if p.kind not in (S.FILE, S.RASTER, S.VECTOR) or not value or not isinstance(value, (str, Path)):
+            continue
+        items = [str(value)]
+        if not Path(str(value)).exists() and ";" in str(value):
+            items = [v.strip() for v in str(value).split(";") if v.strip()]   # pipeline: several tiles
+        for item in items:
+            real = _real(item)
+            out.append((p.name, real))
+            if real.suffix.lower() == ".vpc" and real.is_file():
+                from ..core.catalog import read_vpc
+
+                try:
+                    out.extend((p.name, _real(f)) for f, _ in read_vpc(real))
+                except InputError:
+                    pass  # the run itself says what is wrong with the .vpc
+    return out
+
+
+def _related(a: Path, b: Path) -> str:
+    """'' or how two real paths clash: 'is', 'contains' (a holds b) or 'is inside' (a lies in b)."""
+    import os
+
+    if a == b or (a.exists() and b.exists() and os.path.samefile(a, b)):
+        return "is"
+    if b.is_relative_to(a) if hasattr(b, "is_relative_to") else str(b).startswith(str(a) + os.sep):
+        return "contains"
+    if a.is_relative_to(b) if hasattr(a, "is_relative_to") else str(a).startswith(str(b) + os.sep):
+        return "is inside"
+    return ""
+
+
+def check_paths(alg, args: dict, raw: Optional[dict] = None, outputs: Optional[dict] = None,
+                vector_suffixes: tuple = (".gpkg",)) -> None:
+    """Refuse, before any computation, outputs that would destroy an input or have the wrong extension.
+
+    ``args`` are the run's typed values; ``raw`` the front end's strings (for VECTOR inputs,
+    whose typed value is a table); ``outputs`` {name: path} overrides the output paths
+    (Processing's sinks); ``vector_suffixes`` the extensions of vector outputs (() = any, as
+    QGIS's sinks write every OGR format).  Raises :class:`~sylva.core.errors.OutputError`
+    naming the parameter and the path.
+    """
+    import os
+
+    from ..core.errors import OutputError
+    from . import spec as S
+
+    raw = raw or {}
+    targets = []
+    for p in alg.outputs:
+        value = (outputs or {}).get(p.name, args.get(p.name))
+        if not value or not isinstance(value, (str, Path)) or str(value).startswith(("memory:", "TEMPORARY_OUTPUT")):
+            continue
+        targets.append((p, str(value)))
+    inputs = _input_paths(alg, args, raw)
+    seen = {}
+    for p, value in targets:
+        path = _real(value)
+        shown = str(value).split("|", 1)[0]
+        for name, src in inputs:
+            how = _related(path, src)
+            if how:
+                what = {"is": "is the input", "contains": "holds the input", "is inside": "lies inside the input"}[how]
+                raise OutputError(f"--{p.name}={shown}: the output {what} --{name}={src}; it would be "
+                                  "overwritten or mixed with the results: choose another path")
+        suffix = path.suffix.lower()
+        if p.kind == S.FOLDER_OUT:
+            if path.exists() and not path.is_dir():
+                raise OutputError(f"--{p.name}={shown}: is a file, not a folder")
+        else:
+            allowed = vector_suffixes if p.kind == S.VECTOR_OUT else _suffixes(p)
+            if allowed and suffix not in allowed:
+                raise OutputError(f"--{p.name}={shown}: {p.description} is written as "
+                                  f"{' or '.join(allowed)}; the name ends in {suffix or 'no extension'}")
+            if path.is_dir():
+                raise OutputError(f"--{p.name}={shown}: is a folder, not a file name")
+        parent = path if p.kind == S.FOLDER_OUT else path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent   # a folder output is created with its parents
+        if p.kind != S.FOLDER_OUT and not path.parent.is_dir():
+            raise OutputError(f"--{p.name}={shown}: the folder {path.parent} does not exist")
+        if not parent.is_dir():
+            raise OutputError(f"--{p.name}={shown}: {parent} is a file, not a folder")
+        if not os.access(parent, os.W_OK | os.X_OK) or _read_only(parent):
+            raise OutputError(f"--{p.name}={shown}: the folder {parent} is not writable")
+        for other, (q, other_path) in seen.items():
+            if p.kind == S.VECTOR_OUT and q.kind == S.VECTOR_OUT:
+                continue   # several layers may share one GeoPackage
+            how = _related(path, other_path)
+            if how:
+                raise OutputError(f"--{p.name}={shown} and --{q.name}: two outputs cannot share a path "
+                                  "(or lie in one another's folder)")
+        seen[p.name] = (p, path)
+
+
+def _read_only(folder: Path) -> bool:
+    """True on a read-only mount (root passes os.access on read-only permissions, not on ro mounts)."""
+    import os
+
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        return False
+
+
+class OutputGuard:
+    """Snapshot of a run's output paths; :meth:`rollback` removes what a failed run wrote there.
+
+    A file output that the run created or replaced is removed; a folder output that did
+    not exist is removed with its contents; in a folder that existed, the entries the run
+    created or changed are removed (a full disk must not leave 6 of 222 GLBs behind).
+    ``OUTPUT_FOLDER`` (the pipeline's folder) is left alone: its parts are what RESUME reuses,
+    and the catalog cleans its own temporary files (Sylva, not in the papers).
+    """
+
+    def __init__(self, alg, args: dict, outputs: Optional[dict] = None):
+        from . import spec as S
+
+        self.entries = []
+        for p in alg.outputs:
+            value = (outputs or {}).get(p.name, args.get(p.name))
+            if not value or not isinstance(value, (str, Path)) or p.name == "OUTPUT_FOLDER":
+                continue
+            path = Path(str(value).split("|", 1)[0])
+            if str(path).startswith(("memory:", "TEMPORARY_OUTPUT")):
+                continue
+            if "|" in str(value) and path.exists():
+                continue   # a layer written into an existing GeoPackage: its other layers are not ours to remove
+            folder = p.kind == S.FOLDER_OUT
+            if folder:
+                children = {c.name: self._stat(c) for c in path.iterdir()} if path.is_dir() else None
+            else:   # its side files (.prj, .origin.json, .mtl, textures) are named after it
+                children = {c.name: self._stat(c) for c in self._siblings(path)}
+            self.entries.append((path, folder, self._stat(path), children))
+
+    @staticmethod
+    def _siblings(path: Path) -> list:
+        """Files beside ``path`` named after it (``stem.*``, ``stem_*`` with spaces as ``_``), but not itself."""
+        if not path.parent.is_dir():
+            return []
+        stems = {path.stem, "_".join(path.stem.split())}
+        return [c for c in path.parent.iterdir() if c != path and c.is_file()
+                and any(c.name.startswith((f"{s}.", f"{s}_")) for s in stems)]
+
+    @staticmethod
+    def _stat(path: Path):
+        try:
+            st = path.stat()
+        except OSError:
+            return None
+        return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    def describe(self) -> str:
+        """The output paths, for a message that has no file name of its own."""
+        return ", ".join(str(path) for path, _, _, _ in self.entries) or "the outputs"
+
+    def rollback(self) -> None:
+        import shutil
+
+        for path, folder, before, children in self.entries:
+            try:
+                if not folder:
+                    if path.is_file() and self._stat(path) != before:
+                        path.unlink()
+                    for side in path.parent.glob(f".{path.name}.*.part"):
+                        side.unlink(missing_ok=True)
+                    for side in self._siblings(path):
+                        if side.name not in children or children[side.name] != self._stat(side):
+                            side.unlink(missing_ok=True)
+                elif before is None:
+                    shutil.rmtree(path, ignore_errors=True)
+                elif path.is_dir():
+                    for child in path.iterdir():
+                        if children.get(child.name) is None or (child.is_file() and children[child.name] != self._stat(child)):
+                            shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
+            except OSError:
+                pass

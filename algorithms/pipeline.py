@@ -26,7 +26,14 @@ def run(args: dict, feedback: Feedback) -> Result:
     out = args["OUTPUT_FOLDER"]
     if not out:
         raise InputError("OUTPUT_FOLDER: choose an output folder")
-    Path(out).mkdir(parents=True, exist_ok=True)
+    if Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"OUTPUT_FOLDER={out}: is a file, not a folder")
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        from ..core.errors import disk_error
+
+        raise disk_error(out, err) from None
     min_h = float(args["MIN_HEIGHT_M"])
     options = PipelineOptions(
         buffer_m=float(args["BUFFER_M"]), segmentation=SEGMENTATION[args["METHOD"]](min_height_m=min_h),
@@ -39,11 +46,18 @@ def run(args: dict, feedback: Feedback) -> Result:
                          resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)
     for line in report.summary().splitlines():
         (feedback.warn if line.startswith("FAILED") else feedback.info)(line)
+    if not report.tiles:
+        first = report.failures[0] if report.failures else {"name": "?", "reason": "no tile"}
+        raise InputError(f"every tile failed ({len(report.failures)} of {len(report.failures)}; "
+                         f"see {Path(out) / 'report.txt'}): first {first['name']}: {first['reason']}")
     result = Result(values={"TREE_COUNT": report.trees, "TILE_COUNT": len(report.tiles),
                             "FAILED_TILES": len(report.failures)})
     result.files["OUTPUT_FOLDER"] = str(out)
     if report.gpkg:
         result.values["GEOPACKAGE"] = report.gpkg
+    for name, path in (("DTM", report.dtm), ("CHM", report.chm)):   # dtm.vrt (the 3D view's terrain), chm.vrt
+        if path:
+            result.files[name] = path
     return result
 
 
@@ -96,8 +110,11 @@ PIPELINE = Algorithm(
               help="Local processes working on tiles at once (each needs the memory of one tile and "
                    "its buffer)."),
         Param("SCHEDULER", STRING, "Dask scheduler address", optional=True, advanced=True,
-              help="e.g. tcp://10.0.0.5:8786: send the tiles to a dask.distributed cluster instead of "
-                   "local workers (needs 'pip install dask[distributed]'; workers must see the same paths)."),
+              help="e.g. tcp://10.0.0.5:8786 (tcp:// or tls:// only): send the tiles to a dask.distributed "
+                   "cluster instead of local workers (needs 'pip install dask[distributed]'; workers must see "
+                   "the same paths). A scheduler is trusted code execution: dask exchanges tasks and results "
+                   "pickled, so a scheduler or worker you do not control can run any code on this machine; "
+                   "never take this address from a project file you did not write."),
         Param("RESUME", BOOLEAN, "Skip completed tiles", default=True,
               help="Reuse tiles whose outputs are complete for the same input files and parameters."),
         crs_override(),

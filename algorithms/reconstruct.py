@@ -8,11 +8,11 @@ import numpy as np
 from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
-from .common import build_method, crs_override, input_cloud, load_segmented, method_params
+from .common import build_method, crs_override, input_cloud, method_params
 from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LEAF_LABELS, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
                    Algorithm, Feedback, Param, Result)
 
-METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed")
+METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed", "yan")
 
 GREEDY_PARAMS = method_params(GreedySkeleton, {
     "voxel_m": ("thinning voxel (m)", "Voxel pitch of the thinning, d_l of Hu et al. 2017 (§5.1, §6.2: 0.2 m)."),
@@ -52,27 +52,31 @@ GUIDED_PARAMS = method_params(GuidedGrowth, {
    prefix="Guided growth: ")
 
 METHOD_LABELS = ("Hybrid: greedy skeleton, guided growth where it fails", "Greedy skeleton (Hu et al. 2017)",
-                 "Guided growth (Guo et al. 2018)", "Dense scans (Yan et al. 2009)",
-                 "Automatic: dense where the scan is dense", "Completed: hybrid plus grown small branches")
+                 "Guided growth (Guo et al. 2018)", "Dense scans: wood fitted to the points",
+                 "Automatic: dense where the scan is dense", "Completed: hybrid plus grown small branches",
+                 "Yan et al. 2009 variational k-means (B-spline branches)")
 
 
 def _methods(args):
     """(method, dense_method) for ModelOptions from the METHOD choice."""
     from ..core.reconstruct import Hybrid, VariationalKMeans
+    from ..core.reconstruct.levelset import LevelSetQSM
 
     greedy = build_method(GreedySkeleton, args)
     guided = build_method(GuidedGrowth, args)
     hybrid = Hybrid(primary=greedy, fallback=guided)
-    # Dense scans: Yan et al. with the options measured best on thick stems and on the TLS trees
-    # (benchmarks/dense.py, config "sylva"): surface-normal axes, least-squares circles, clusters split
-    # down to 30 points, cylinder radii and axes refitted to the points.
-    dense = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
+    # Dense scans: geodesic level sets with circles fitted to the points and the wood swept along them
+    # (benchmarks/dense.py measures the written GLB: closer to the points than AdTree's on the TLS trees).
+    # "yan": Yan et al.'s variational k-means with the options measured best on thick stems (surface-normal
+    # axes, least-squares circles, clusters split down to 30 points, radii and axes refitted).
+    dense = LevelSetQSM()
+    yan = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
     if args["METHOD"] == "completed":
         from ..core.reconstruct.sketch import SketchCompletion
 
         return SketchCompletion(primary=hybrid), None
     return {"hybrid": (hybrid, None), "greedy": (greedy, None), "guided": (guided, None),
-            "dense": (dense, None), "auto": (hybrid, dense)}[args["METHOD"]]
+            "dense": (dense, None), "auto": (hybrid, dense), "yan": (yan, None)}[args["METHOD"]]
 
 
 def run(args: dict, feedback: Feedback) -> Result:
@@ -81,7 +85,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.forest import ModelOptions, model_trees, qsm_tables, skeleton_table
     from ..core.measure import tree_metrics
 
-    cloud, labels = load_segmented(args, feedback)
+    cloud, labels = load_trees(args, feedback)
     metrics = tree_metrics(cloud, labels)
     feedback.info(f"{len(metrics)} trees to model")
     method, dense = _methods(args)
@@ -115,6 +119,57 @@ def run(args: dict, feedback: Feedback) -> Result:
     feedback.info("methods used: " + ", ".join(f"{m} {n}" for m, n in counts.items()))
     feedback.progress(1.0, "done")
     return result
+
+
+#: A cloud without treeID that spans at most this many metres across is one tree (a single-tree scan).
+SINGLE_TREE_MAX_M = 40.0
+
+
+def load_trees(args: dict, feedback: Feedback):
+    """(cloud without noise, with ``height`` above ground; int64 treeID labels) of INPUT.
+
+    A segmented tile (treeID) as :func:`~.common.load_segmented` reads it; a scan without treeID that
+    spans at most :data:`SINGLE_TREE_MAX_M` is one tree (label 1).  Without a CRS the coordinates are
+    a local engineering frame in metres (models and tables are written in it).  Without ground points
+    a single tree stands on its lowest points: height = z - the lowest z.
+    """
+    from ..core.errors import InputError
+    from ..core.io import read_cloud
+    from ..core.terrain import ground_mask, normalize
+    from .common import drop_noise
+
+    source = read_cloud(args["INPUT"], crs=args.get("CRS") or None)
+    name = Path(args["INPUT"]).name
+    frame = (f"CRS {source.crs.name}" if source.crs is not None else
+             "no CRS: a local engineering frame, models and tables are written in the file's coordinates")
+    feedback.info(f"{name}: {len(source):,} points, {frame}, units {source.units.describe()}")
+    single = "treeID" not in source.attrs
+    if single:
+        span = np.ptp(source.local_xyz()[:, :2], axis=0) if len(source) else np.zeros(2)
+        if span.max() > SINGLE_TREE_MAX_M:
+            raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension and spans "
+                             f"{span[0]:.0f} m x {span[1]:.0f} m, more than one tree; run 'Segment trees' "
+                             "(sylva:segmenttrees, METHOD stems for terrestrial plot scans) on it first")
+        feedback.info(f"{name}: no treeID dimension: modelled as one tree (a single-tree scan, "
+                      f"{span[0]:.1f} m x {span[1]:.1f} m)")
+        source = source.with_attrs(treeID=np.ones(len(source), dtype=np.int32))
+    cloud, _ = drop_noise(source, feedback)
+    if len(cloud) == 0:
+        raise InputError(f"{args['INPUT']}: no points left once noise is removed: there is no tree to model")
+    if cloud.attr("height") is None:
+        feedback.progress(0.02, "height above ground")
+        if single and not ground_mask(cloud).any():
+            z = cloud.local_xyz()[:, 2]
+            base = float(z.min())
+            feedback.info(f"{name}: no ground points: the tree stands on its lowest points "
+                          f"(z = {cloud.from_local(np.array([[0.0, 0.0, base]]))[0, 2]:.2f})")
+            cloud = cloud.with_attrs(height=z - base)
+        else:
+            cloud = normalize(cloud)
+    labels = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    if not (labels > 0).any():
+        raise InputError(f"{args['INPUT']}: no point has a treeID above 0: there is no tree to model")
+    return cloud, labels
 
 
 def _write_qsm_folder(folder, cylinders, branches, trees) -> None:
@@ -154,16 +209,19 @@ RECONSTRUCT_TREES = Algorithm(
         "skeleton segment with the model's radii (column qsm_method says which)."
     ),
     params=(
-        input_cloud(" It must carry a treeID dimension (0 = no tree)."),
-        Param("METHOD", ENUM, "Reconstruction method", options=METHODS, default="hybrid", labels=METHOD_LABELS,
-              help="hybrid: greedy skeleton, guided growth where it fails (Hu §6.2); greedy: Hu et al. "
-                   "only; guided: Guo et al. only; dense: Yan et al. variational k-means, for terrestrial "
-                   "or drone scans where branches are visible; auto: dense for trees dense enough "
-                   "(8th neighbour within 0.25 m, lower stem scanned), hybrid for the others; completed: "
-                   "hybrid, then small branches grown by self-similarity (the sketch paper §6, Table 1 "
-                   "angles) inside the crown's silhouettes seen from the south and from the east, for "
-                   "fuller crowns where the scan saw only the main branches. Each method's own settings are under "
-                   "Advanced parameters, named after it."),
+        input_cloud(" A segmented tile carries a treeID dimension (0 = no tree); a scan of one tree "
+                    "(LAS/LAZ, text or PLY, with or without ground points or CRS) is modelled as one tree "
+                    "standing on its lowest stem points."),
+        Param("METHOD", ENUM, "Reconstruction method", options=METHODS, default="auto", labels=METHOD_LABELS,
+              help="auto (default): dense for trees scanned densely enough (8th neighbour within 0.25 m, "
+                   "lower stem scanned: terrestrial, mobile or drone scans), hybrid for the others; "
+                   "hybrid: greedy skeleton, guided growth where it fails (Hu §6.2); greedy: Hu et al. "
+                   "only; guided: Guo et al. only; dense: wood fitted to the points (geodesic level sets "
+                   "of the scan, a circle fitted to every cross-section, tubes swept along them; no leaf "
+                   "cards unless LEAVES asks for them); completed: hybrid, then small branches grown by "
+                   "self-similarity (the sketch paper §6, Table 1 angles) inside the crown's silhouettes "
+                   "seen from the south and from the east, for fuller crowns where the scan saw only the "
+                   "main branches; yan: Yan et al. (2009) variational k-means with B-spline branches. Each method's own settings are under Advanced parameters, named after it."),
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
         Param("LOD", INTEGER, "Level of detail (0–2)", default=0, minimum=0, maximum=2,
@@ -171,7 +229,8 @@ RECONSTRUCT_TREES = Algorithm(
                    "smoothed (~0.5 MB a tree); 2: 12 sides, every twig."),
         Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
               labels=LEAF_LABELS,
-              help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise."),
+              help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise; "
+                   "none on wood fitted to a dense scan."),
         crs_override(),
         Param("MODELS", FILE_OUT, "3D models (GLB)", file_filter="glTF binary (*.glb)", optional=True,
               help="One GLB for the tile, a node per tree named tree_<id>, with a .prj and an origin sidecar."),
@@ -180,7 +239,7 @@ RECONSTRUCT_TREES = Algorithm(
         Param("TREES", VECTOR_OUT, "Trees table", geometry=NO_GEOMETRY,
               help="The segmentation's fields plus base_x/y/z, dbh, dbh_source, n_branches, "
                    "total_branch_length, wood_volume, method, visited_fraction, quality, leaves, flags, "
-                   "qsm_method (bspline_cylinders: Yan et al. cylinders; skeleton_edges: a cylinder per "
+                   "qsm_method (fitted_cylinders: the dense method's cylinders fitted to the points; bspline_cylinders: Yan et al. cylinders; skeleton_edges: a cylinder per "
                    "skeleton segment), n_cylinders, trunk_volume and total_volume (m³, sums of the QSM's "
                    "cylinders), n_branches_order_1..3 and branch_counts (order:count for every order), "
                    "model_file."),

@@ -1,48 +1,124 @@
-"""Dense-scan benchmark: Yan et al. 2009 variational k-means + TreeQSM-like cylinders.
+"""Dense-scan benchmark, measured through the GLB a user gets (issue 18).
 
-    python benchmarks/dense.py            # synthetic trees, TLS trees, segmentation timing
-    python benchmarks/dense.py --quick    # smaller timing runs
-    python benchmarks/dense.py --timing   # segmentation timing only
-    python benchmarks/dense.py --only sylva   # one configuration (paper / tls / sylva)
+    python benchmarks/dense.py            # TLS trees + synthetic trees with known cylinders, default options
+    python benchmarks/dense.py --yan      # also METHOD=yan (Yan et al. 2009 variational k-means)
+    python benchmarks/dense.py --timing   # Yan et al.'s segmentation timing against their Table 1
 
-Prints, per method configuration ("paper": Yan's defaults, principal axis +
-enclosing circle; "tls": surface-normal axis + least-squares circles, the
-first increment's choice; "sylva": what ``sylva:reconstructtrees`` uses now,
-"tls" + clusters split down to 30 points + cylinder radii and axes refitted
-to the points, inner branches dropped after the refit):
+For every tree, ``sylva reconstructtrees --INPUT=<scan> --MODELS=<tree>.glb`` with DEFAULT options (no
+treeID, no ground class, no CRS: a single-tree scan in a local engineering frame) is run once through the
+CLI (a new process, timed) and again in-process (``sylva.cli.main`` after a warm-up call, timed); the
+written GLB is read back (:func:`sylva.core.export.read.read_models`), its wood vertices taken to the
+source frame by the georeference (base + tree-local metres), and:
 
-* synthetic dense trees with known cylinders (trunk + branches sampled on
-  their surfaces with noise, full or one-sided): mean / 95th percentile
-  distance from the points to the model surface (cm), share of points within
-  2 cm, DBH / height / volume errors against the truth, time per tree, per
-  step and per 1,000 points;
-* the TLS trees of ../shared/data/tls (if present): the same surface
-  figures and times, and the QSM measurements (no truth for them);
-* the segmentation time on 34,542 and 217,187 points (TLS tree 7 resampled
-  along its kNN segments), against Yan et al.'s Table 1 (5.94 s and 215.2 s).
+* points -> surface: exact point-to-triangle distance from every scan point to the nearest triangle
+  (candidates: the triangles of the 12 nearest samples of a 4 mm area-weighted sampling of the mesh);
+* surface -> points: distance from a 1 cm area-weighted sampling of the mesh to the nearest scan point;
+
+mean and 95th percentile (cm), share of points within 2 cm, vertices and bytes of the GLB, DBH, and,
+for synthetic trees, the DBH error against the truth. AdTree's figures (issue 18: its branch mesh,
+same measure, built unmodified on this machine) are printed beside them.
 """
 from __future__ import annotations
 
+import io
+import subprocess
 import sys
+import tempfile
 import time
+from contextlib import redirect_stdout
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sylva.core.qsm import cylinder_tree, measure_qsm, sample_cylinder_surfaces, surface_distance
-from sylva.core.reconstruct import TreePoints
-from sylva.core.reconstruct.kmeans import VariationalKMeans, is_dense_scan, segment
+from sylva.core.qsm import cylinder_tree, sample_cylinder_surfaces
+from sylva.core.reconstruct.kmeans import VariationalKMeans, segment
 
 HERE = Path(__file__).resolve()
 
 TLS = HERE.parents[1].parent / "shared" / "data" / "tls"
+#: AdTree on the same trees, same measure (issue 18): mean points -> surface (cm), time (s)
+ADTREE = {"tree1": (1.33, 0.45), "tree7": (1.68, 0.77), "tree13": (4.24, 0.29)}
 CONFIGS = {
     "paper": VariationalKMeans(),
     "tls": VariationalKMeans(axis="normals", radius="fit"),
     "sylva": VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30),
 }
 
+
+# ----------------------------------------------------------------------------- mesh distances
+
+def sample_surface(v, f, spacing=0.004, seed=0):
+    """Area-weighted samples of a triangle mesh, about one per ``spacing``²: (points, triangle of each)."""
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    n = np.maximum(1, np.ceil(area / spacing ** 2).astype(np.int64))
+    tri = np.repeat(np.arange(len(f)), n)
+    rng = np.random.default_rng(seed)
+    u, w = rng.random(len(tri)), rng.random(len(tri))
+    flip = u + w > 1
+    u[flip], w[flip] = 1 - u[flip], 1 - w[flip]
+    return a[tri] + u[:, None] * (b - a)[tri] + w[:, None] * (c - a)[tri], tri
+
+
+def point_triangle(p, a, b, c):
+    """Exact distance from every point ``p[i]`` to the triangle ``(a[i], b[i], c[i])`` (Ericson 2005, 5.1.5)."""
+    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+    d1, d2 = (ab * ap).sum(1), (ac * ap).sum(1)
+    d3, d4 = (ab * bp).sum(1), (ac * bp).sum(1)
+    d5, d6 = (ab * cp).sum(1), (ac * cp).sum(1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    den = va + vb + vc
+    den = np.where(np.abs(den) < 1e-30, 1e-30, den)
+    q = a + ab * (vb / den)[:, None] + ac * (vc / den)[:, None]
+    done = np.zeros(len(p), bool)
+
+    def put(mask, value):
+        m = mask & ~done
+        q[m] = value[m]
+        done[m] = True
+
+    safe = lambda x: np.where(x == 0, 1e-30, x)   # noqa: E731
+    put((d1 <= 0) & (d2 <= 0), a)
+    put((d3 >= 0) & (d4 <= d3), b)
+    put((d6 >= 0) & (d5 <= d6), c)
+    put((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / safe(d1 - d3))[:, None] * ab)
+    put((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / safe(d2 - d6))[:, None] * ac)
+    put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+        b + ((d4 - d3) / safe((d4 - d3) + (d5 - d6)))[:, None] * (c - b))
+    return np.linalg.norm(p - q, axis=1)
+
+
+def points_to_mesh(points, v, f, k=12):
+    s, tri = sample_surface(v, f)
+    _, idx = cKDTree(s).query(points, k=k, workers=-1)
+    cand = tri[idx].reshape(-1)
+    pp = np.repeat(points, k, axis=0)
+    return point_triangle(pp, v[f[cand, 0]], v[f[cand, 1]], v[f[cand, 2]]).reshape(len(points), k).min(1)
+
+
+def mesh_to_points(points, v, f, spacing=0.01):
+    s, _ = sample_surface(v, f, spacing=spacing, seed=1)
+    return cKDTree(points).query(s, workers=-1)[0]
+
+
+def glb_wood(path):
+    """(vertices in the source frame, faces, GLB bytes, attributes of the first tree) of a Sylva GLB."""
+    from sylva.core.export.read import read_models
+
+    models, frame = read_models(path)
+    units = frame.resolved_units()
+    vs, fs, nv = [], [], 0
+    for m in models:
+        v, f = m.wood_arrays()
+        scale = np.array([units.horizontal_m] * 2 + [units.vertical_m])
+        vs.append(m.base + v / scale)
+        fs.append(f + nv)
+        nv += len(v)
+    return np.vstack(vs), np.vstack(fs), Path(path).stat().st_size, models[0].attributes
+
+
+# ----------------------------------------------------------------------------- the trees
 
 def synthetic_specs(kind: str, seed: int):
     """Known cylinder trees: 'small' (30 cm trunk, 4 branches), 'large' (45 cm, 6 + 12 sub-branches)."""
@@ -71,68 +147,6 @@ def synthetic_specs(kind: str, seed: int):
             specs.append(dict(start=start, direction=d2, length=length * 0.35, radius=(0.6 * rb, 0.01),
                               parent=b, n=3))
     return specs
-
-
-def run_tree(name, pts, ground_z, method, truth=None):
-    t0 = time.perf_counter()
-    model = method.model(TreePoints(0, pts, ground_z))
-    t_model = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    q = measure_qsm(model.cylinders, model.branch_parent, pts, base_z=ground_z if truth is not None else None)
-    t_qsm = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    model.mesh()
-    t_mesh = time.perf_counter() - t0
-    d = surface_distance(pts, model.cylinders) * 100     # sylva.core.qsm.surface_distance
-    st = model.reconstruction.stats
-    row = dict(tree=name, n=len(pts), clusters=st.get("n_clusters", 0), fixed=st.get("n_fixed", 0),
-               branches=len(model.curves), mean_cm=d.mean(), p95_cm=np.percentile(d, 95),
-               within2=(d <= 2).mean() * 100, t_seg=st.get("t_segmentation_s", 0), t_branch=st.get("t_branching_s", 0),
-               t_model=st.get("t_modelling_s", 0), t_qsm=t_qsm, t_mesh=t_mesh, t_total=t_model + t_qsm,
-               dbh=q.dbh_m, dbh_src=q.dbh_source, height=q.height_m, vol=q.total_volume_m3,
-               trunk_vol=q.trunk_volume_m3, flags=",".join(model.reconstruction.flags))
-    if truth is not None:
-        row.update(truth)
-    return row
-
-
-def print_rows(rows, with_truth):
-    head = (f"{'tree':<16}{'points':>8}{'clus':>6}{'fix':>5}{'br':>4}{'mean cm':>9}{'p95 cm':>8}{'<=2cm %':>9}"
-            f"{'seg s':>7}{'branch s':>9}{'model s':>8}{'qsm s':>7}{'mesh s':>7}{'s/1k pts':>9}")
-    print(head)
-    for r in rows:
-        print(f"{r['tree']:<16}{r['n']:>8}{r['clusters']:>6}{r['fixed']:>5}{r['branches']:>4}{r['mean_cm']:>9.2f}"
-              f"{r['p95_cm']:>8.2f}{r['within2']:>9.1f}{r['t_seg']:>7.2f}{r['t_branch']:>9.3f}{r['t_model']:>8.3f}"
-              f"{r['t_qsm']:>7.3f}{r['t_mesh']:>7.3f}{1000 * r['t_total'] / r['n']:>9.3f}")
-    if with_truth:
-        print(f"{'tree':<16}{'DBH cm':>8}{'true':>7}{'err':>6}{'src':>10}{'H m':>7}{'err':>6}"
-              f"{'vol m3':>8}{'true':>7}{'err %':>7}{'trunk':>7}{'true':>7}{'err %':>7}  flags")
-        for r in rows:
-            print(f"{r['tree']:<16}{100 * r['dbh']:>8.1f}{100 * r['true_dbh']:>7.1f}{100 * (r['dbh'] - r['true_dbh']):>6.1f}"
-                  f"{r['dbh_src']:>10}{r['height']:>7.2f}{r['height'] - r['true_h']:>6.2f}{r['vol']:>8.3f}"
-                  f"{r['true_vol']:>7.3f}{100 * (r['vol'] / r['true_vol'] - 1):>7.1f}{r['trunk_vol']:>7.3f}"
-                  f"{r['true_trunk']:>7.3f}{100 * (r['trunk_vol'] / r['true_trunk'] - 1):>7.1f}  {r['flags']}")
-    else:
-        print(f"{'tree':<16}{'DBH cm':>8}{'src':>10}{'H m':>7}{'vol m3':>8}{'trunk':>7}  flags")
-        for r in rows:
-            print(f"{r['tree']:<16}{100 * r['dbh']:>8.1f}{r['dbh_src']:>10}{r['height']:>7.2f}{r['vol']:>8.3f}"
-                  f"{r['trunk_vol']:>7.3f}  {r['flags']}")
-
-
-def synthetic_trees():
-    out = []
-    for kind, seed in (("small", 0), ("large", 1)):
-        truth = cylinder_tree(synthetic_specs(kind, seed))
-        h = float(max((truth["start"] + truth["axis"] * truth["length"][:, None])[:, 2].max(), 0))
-        trunk = truth["branch"] == 0
-        vol = np.pi * truth["radius"] ** 2 * truth["length"]
-        zc = truth["start"][trunk, 2]
-        i = np.flatnonzero(trunk)[np.searchsorted(zc, 1.3) - 1]
-        tr = dict(true_dbh=2 * truth["radius"][i], true_h=h, true_vol=vol.sum(), true_trunk=vol[trunk].sum())
-        for scan, vis in (("full", None), ("1side", (1.0, 0.4, 0.0))):
-            pts = sample_cylinder_surfaces(truth, spacing_m=0.015, noise_m=0.003, seed=seed + 10, visible=vis)
-            out.append((f"{kind}-{scan}", pts, tr))
-    return out
 
 
 def timing(quick: bool):
@@ -168,32 +182,85 @@ def timing(quick: bool):
                   f"{med:>9.2f}{paper[n]:>9.2f}{paper[n] / best:>9.1f}x{paper[n] / med:>9.1f}x")
 
 
+
+
+def synthetic_trees():
+    """(name, points, true DBH) of the synthetic cylinder trees: full and one-sided scans."""
+    out = []
+    for kind, seed in (("small", 0), ("large", 1)):
+        truth = cylinder_tree(synthetic_specs(kind, seed))
+        trunk = np.flatnonzero(truth["branch"] == 0)
+        i = trunk[np.searchsorted(truth["start"][trunk, 2], 1.3) - 1]
+        for scan, vis in (("full", None), ("1side", (1.0, 0.4, 0.0))):
+            pts = sample_cylinder_surfaces(truth, spacing_m=0.015, noise_m=0.003, seed=seed + 10, visible=vis)
+            out.append((f"{kind}-{scan}", pts, 2 * float(truth["radius"][i])))
+    return out
+
+
+def run_one(name, xyz, workdir: Path, extra=()):
+    """CLI and in-process runs of the default reconstruction of one scan; the GLB's figures."""
+    from sylva import cli
+
+    scan = workdir / f"{name}.xyz"
+    np.savetxt(scan, xyz, fmt="%.4f")
+    glb = workdir / f"{name}.glb"
+    argv = ["--quiet", "reconstructtrees", f"--INPUT={scan}", f"--MODELS={glb}",
+            f"--TREES={workdir / (name + '.gpkg')}", *extra]
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "sylva.cli", *argv], check=True, capture_output=True)
+    t_cli = time.perf_counter() - t0
+    with redirect_stdout(io.StringIO()):
+        cli.main(argv)                       # warm-up (imports, compiled kernels)
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            cli.main(argv)
+            times.append(time.perf_counter() - t0)
+    v, f, size, attrs = glb_wood(glb)
+    d = points_to_mesh(xyz, v, f) * 100
+    s = mesh_to_points(xyz, v, f) * 100
+    return dict(tree=name, n=len(xyz), p2s=d.mean(), p2s95=np.percentile(d, 95), within2=(d <= 2).mean() * 100,
+                s2p=s.mean(), s2p95=np.percentile(s, 95), verts=len(v), bytes=size, t_cli=t_cli,
+                t_in=min(times), dbh=float(attrs.get("dbh", np.nan)), dbh_src=attrs.get("dbh_source", ""))
+
+
+def print_rows(rows, truth=None):
+    print(f"{'tree':<13}{'points':>7}{'p->s cm':>8}{'p95':>6}{'<=2cm%':>7}{'s->p cm':>8}{'p95':>6}"
+          f"{'verts':>7}{'GLB kB':>8}{'CLI s':>7}{'in s':>6}{'DBH cm':>7}{'src':>9}"
+          f"{'AdTree cm':>10}{'AdTree s':>9}{'target':>7}  ok")
+    for r in rows:
+        ad = ADTREE.get(r["tree"])
+        extra = ""
+        if ad:
+            ok = (r["p2s"] <= 0.7 * ad[0], r["s2p"] <= 2 * r["p2s"], r["t_in"] <= ad[1], r["verts"] <= 15_000)
+            extra = (f"{ad[0]:>10.2f}{ad[1]:>9.2f}{0.7 * ad[0]:>7.2f}  "
+                     f"p2s {'yes' if ok[0] else 'NO'}, s2p {'yes' if ok[1] else 'NO'}, "
+                     f"time {'yes' if ok[2] else 'NO'}, size {'yes' if ok[3] else 'NO'}")
+        elif truth:
+            extra = f"   true DBH {100 * truth[r['tree']]:.1f} cm, error {100 * (r['dbh'] - truth[r['tree']]):+.1f} cm"
+        print(f"{r['tree']:<13}{r['n']:>7}{r['p2s']:>8.2f}{r['p2s95']:>6.2f}{r['within2']:>7.1f}{r['s2p']:>8.2f}"
+              f"{r['s2p95']:>6.2f}{r['verts']:>7}{r['bytes'] / 1000:>8.0f}{r['t_cli']:>7.2f}{r['t_in']:>6.2f}"
+              f"{100 * r['dbh']:>7.1f}{r['dbh_src']:>9}{extra}")
+
+
 def main():
-    quick = "--quick" in sys.argv
     if "--timing" in sys.argv:
-        timing(quick)
+        timing("--quick" in sys.argv)
         return
-    if "--only" in sys.argv:     # --only NAME: one configuration
-        keep = sys.argv[sys.argv.index("--only") + 1]
-        for k in list(CONFIGS):
-            if k != keep:
-                del CONFIGS[k]
-    syn = synthetic_trees()
-    for name, method in CONFIGS.items():
-        print(f"\n=== synthetic dense trees, config {name!r}: {method}")
-        print_rows([run_tree(n, p, 0.0, method, t) for n, p, t in syn], True)
-    tls = [p for p in (TLS / f"tree{i}.xyz" for i in (1, 7, 13)) if p.exists()]
-    if tls:
-        for name, method in CONFIGS.items():
-            print(f"\n=== TLS trees ({TLS}), config {name!r}")
-            rows = []
-            for p in tls:
-                xyz = np.loadtxt(p)
-                rows.append(run_tree(f"{p.stem} d={int(is_dense_scan(xyz))}", xyz, float(xyz[:, 2].min()), method))
-            print_rows(rows, False)
-    else:
-        print(f"\n(no TLS trees at {TLS})")
-    timing(quick)
+    methods = [("default", ())] + ([("yan", ("--METHOD=yan",))] if "--yan" in sys.argv else [])
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for label, extra in methods:
+            tls = [p for p in (TLS / f"tree{i}.xyz" for i in (1, 7, 13)) if p.exists()]
+            if tls:
+                print(f"\n=== TLS trees ({TLS.name}), reconstructtrees {label} options, measured through the GLB")
+                print_rows([run_one(p.stem, np.loadtxt(p), work, extra) for p in tls])
+            else:
+                print(f"\n(no TLS trees at {TLS})")
+            syn = synthetic_trees()
+            print(f"\n=== synthetic trees with known cylinders, {label} options")
+            print_rows([run_one(n, p, work, extra) for n, p, _ in syn], {n: t for n, _, t in syn})
+    print("\n(times on a shared machine: compare within one run)")
 
 
 if __name__ == "__main__":

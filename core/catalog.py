@@ -44,7 +44,8 @@ from typing import Any, Dict, List, Optional, Sequence
 import numpy as np
 
 from .atomic import atomic_path, atomic_write_bytes, move_into_place, temporary_beside
-from .errors import Cancelled, InputError, SylvaError
+from .errors import Cancelled, InputError, OutputError, ParameterError, SylvaError, disk_error
+from .io.gpkg import GpkgMerge, default_styles
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile, tree_ids
 from .progress import CancelCheck, Progress, check, report
 
@@ -142,7 +143,7 @@ def list_tiles(inputs, crs=None) -> tuple:
             raise InputError(f"{p}: not a LAS/LAZ file, a folder or a .vpc virtual point cloud")
     if not found:
         raise InputError(f"no LAS/LAZ tiles in {', '.join(map(str, inputs))}")
-    tiles, failures, names = [], [], set()
+    tiles, failures, names, infos = [], [], set(), {}
     for path in sorted(found):
         try:
             info = las_info(path, crs=crs)
@@ -151,8 +152,10 @@ def list_tiles(inputs, crs=None) -> tuple:
             points = info.point_count
             mpu = float(info.units.horizontal_m)
         except SylvaError as err:
-            failures.append({"name": Path(path).stem, "path": path, "reason": str(err), "attempts": 0})
+            failures.append({"name": Path(path).stem, "path": path, "status": "failed", "reason": str(err),
+                             "attempts": 1})   # a header that cannot be read is not retried
             continue
+        infos[path] = info
         name = Path(path).stem
         k = 2
         while name in names:
@@ -160,7 +163,40 @@ def list_tiles(inputs, crs=None) -> tuple:
             k += 1
         names.add(name)
         tiles.append(Tile(path, name, bounds, points, mpu))
+    if crs is None:
+        require_one_crs({t.path: infos[t.path].crs for t in tiles})
     return tiles, failures
+
+
+def require_one_crs(crs_of: Dict[str, object]) -> None:
+    """Refuse tiles in different CRSs (:class:`CRSError` naming the odd ones) — Sylva, not in the papers.
+
+    CRSs are compared as pyproj objects (``equals`` ignoring axis order), not by name: a
+    WKT and an EPSG code of one CRS are equal; UTM 12N, UTM 17N and a state plane in feet
+    are not.  The largest group of equal CRSs is the run's; tiles without a CRS are odd too
+    when others have one.  The CRS parameter reads every tile in one CRS instead.
+    """
+    from .errors import CRSError
+
+    groups: List[list] = []   # [crs, [paths]]
+    for path, crs in crs_of.items():
+        for group in groups:
+            a, b = group[0], crs
+            if (a is None and b is None) or (a is not None and b is not None
+                                             and (a == b or a.equals(b, ignore_axis_order=True))):
+                group[1].append(path)
+                break
+        else:
+            groups.append([crs, [path]])
+    if len(groups) <= 1:
+        return
+    groups.sort(key=lambda g: (-len(g[1]), g[0] is None))
+    main = groups[0][0]
+    odd = "; ".join(f"{Path(p).name} ({'no CRS' if g[0] is None else g[0].name})"
+                    for g in groups[1:] for p in g[1])
+    raise CRSError(f"the tiles of a run must share one CRS: {len(groups[0][1])} tile(s) are in "
+                   f"{'no CRS' if main is None else main.name}, but {odd}; reproject those tiles, or set "
+                   "the CRS parameter to read every tile in one CRS")
 
 
 def file_checksum(path, block: int = 1 << 22) -> str:
@@ -272,15 +308,67 @@ def _run_pool(jobs, workers, on_done, cancelled, work=process_tile, idle=lambda:
             except BaseException:
                 for fut in pending:
                     fut.cancel()
+                _terminate(pool)   # a cancel (Ctrl-C, SIGTERM) must not wait for the tiles in flight
                 raise
 
 
-def _run_dask(jobs, scheduler, on_done, cancelled, idle=lambda: False):
+def _terminate(pool) -> None:
+    """Stop a ProcessPoolExecutor's workers now (their .part files are removed by the run)."""
+    processes = dict(getattr(pool, "_processes", None) or {})
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes.values():
+        try:
+            proc.terminate()
+        except Exception:  # noqa: BLE001 — already gone
+            pass
+    for proc in processes.values():
+        try:
+            proc.join(5)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5)
+        except Exception:  # noqa: BLE001
+            pass
+
+
+#: The address schemes a SCHEDULER may use: given explicitly, over the network only.
+SCHEDULER_SCHEMES = ("tcp://", "tls://")
+
+
+def connect_scheduler(address: str, timeout_s: Optional[float] = None):
+    """A dask.distributed Client for ``address`` (tcp:// or tls:// only), or one line why not.
+
+    A scheduler is trusted code execution: dask sends tasks and results pickled both ways, so a
+    scheduler (or a worker) one does not control can run any code in this process.  Only
+    addresses written out with an explicit tcp:// or tls:// scheme are accepted (no inproc://,
+    ucx:// or a bare host name that dask would complete), and the connection times out instead
+    of hanging (Sylva, not in the papers).
+    """
     try:
-        from distributed import Client, wait
+        from distributed import Client
     except ImportError:
         raise InputError("the SCHEDULER option needs dask.distributed: pip install 'dask[distributed]'") from None
-    client = scheduler if hasattr(scheduler, "submit") else Client(scheduler)
+    if timeout_s is None:   # SYLVA_SCHEDULER_TIMEOUT_S: seconds to wait for the scheduler (default 20)
+        try:
+            timeout_s = float(os.environ.get("SYLVA_SCHEDULER_TIMEOUT_S", "20"))
+        except ValueError:
+            timeout_s = 20.0
+    text = str(address).strip()
+    if not text.lower().startswith(SCHEDULER_SCHEMES) or len(text) <= 6:
+        raise InputError(f"SCHEDULER={text!r}: give the scheduler's address with its scheme, "
+                         "tcp://HOST:PORT or tls://HOST:PORT")
+    try:
+        return Client(text, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError) as err:
+        raise InputError(f"SCHEDULER={text}: cannot reach the dask scheduler within {timeout_s:g} s "
+                         f"({type(err).__name__}: {' '.join(str(err).split())[:200]})") from None
+    except ValueError as err:
+        raise InputError(f"SCHEDULER={text}: not a usable scheduler address ({err})") from None
+
+
+def _run_dask(jobs, scheduler, on_done, cancelled, idle=lambda: False):
+    client = scheduler if hasattr(scheduler, "submit") else connect_scheduler(scheduler)
+    from distributed import wait
     pending = {}
     try:
         pending = {client.submit(process_tile, job, pure=False, key=f"sylva-{job.name}-{job.attempt}-{job.checksum}"): job
@@ -336,10 +424,10 @@ def _resolve_ids(records, out_dir, bits) -> Dict[str, dict]:
 
 
 def _remap_las(path, mapping: dict) -> None:
-    from .io.las import read_las, write_las
+    from .io.las import read_las, tree_labels, write_las
 
     cloud = read_las(path)
-    tid = np.asarray(cloud.attrs["treeID"]).astype(np.int64)
+    tid = tree_labels(cloud.attrs["treeID"])
     old = np.array(list(mapping), dtype=np.int64)
     new = np.array([mapping[k] for k in mapping], dtype=np.int64)
     order = np.argsort(old)
@@ -349,102 +437,11 @@ def _remap_las(path, mapping: dict) -> None:
     write_las(path, cloud.with_attrs(treeID=tid.astype(np.int32)))
 
 
-#: Parts are read through a memory map of up to this many bytes each (SQLite's mmap_size), not read() calls.
-MERGE_MMAP_BYTES = 1 << 30
-
-
-class GpkgMerge:
-    """Appends per-tile GeoPackages to one (``path``, a new file), table by table in SQL.
-
-    Memory stays bounded (sqlite copies rows); extents are the union of the parts'.
-    :meth:`add` returns the fids each table's new rows got, which :meth:`remap`
-    takes to rewrite their ``tree_id`` values.  The connection may be handed from
-    one thread to another (never used by two at once).
-    """
-
-    def __init__(self, path):
-        from .io.gpkg import new_file_pragmas
-
-        self.con = sqlite3.connect(path, check_same_thread=False)
-        # a temporary file renamed at the end: no journal, no fsync per part, larger pages
-        new_file_pragmas(self.con)
-        self.con.execute(f"PRAGMA mmap_size = {MERGE_MMAP_BYTES}")   # parts attached later are read mapped too
-        self.con.execute("PRAGMA application_id = 1196444487")
-        self.con.execute("PRAGMA user_version = 10200")
-        self.created: Dict[str, set] = {}
-        self.parts = 0
-
-    def add(self, part) -> Dict[str, tuple]:
-        """Append the layers of the GeoPackage ``part``; returns {table: (first fid - 1, last fid)}."""
-        con = self.con
-        ranges = {}
-        con.execute("ATTACH DATABASE ? AS part", (str(part),))
-        try:
-            if self.parts == 0:
-                for (sql,) in con.execute("SELECT sql FROM part.sqlite_master WHERE type='table' AND name LIKE 'gpkg_%'"):
-                    con.execute(sql)
-                con.execute("INSERT INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                con.execute("INSERT INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                con.execute("INSERT INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-            else:
-                con.execute("INSERT OR IGNORE INTO gpkg_spatial_ref_sys SELECT * FROM part.gpkg_spatial_ref_sys")
-                con.execute("INSERT OR IGNORE INTO gpkg_geometry_columns SELECT * FROM part.gpkg_geometry_columns")
-                con.execute("INSERT OR IGNORE INTO gpkg_contents SELECT * FROM part.gpkg_contents")
-                con.execute(
-                    "UPDATE gpkg_contents SET "
-                    "min_x = min(coalesce(min_x, (SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.min_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_x)), "
-                    "min_y = min(coalesce(min_y, (SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.min_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), min_y)), "
-                    "max_x = max(coalesce(max_x, (SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.max_x FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_x)), "
-                    "max_y = max(coalesce(max_y, (SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name)), "
-                    "coalesce((SELECT p.max_y FROM part.gpkg_contents p WHERE p.table_name = gpkg_contents.table_name), max_y))")
-            tables = [r[0] for r in con.execute(
-                "SELECT name FROM part.sqlite_master WHERE type='table' AND name NOT LIKE 'gpkg_%' "
-                "AND name NOT LIKE 'sqlite_%'")]
-            for t in tables:
-                cols = [r[1] for r in con.execute(f'PRAGMA part.table_info("{t}")') if r[1] != "fid"]
-                if t not in self.created:
-                    (sql,) = con.execute("SELECT sql FROM part.sqlite_master WHERE name = ?", (t,)).fetchone()
-                    con.execute(sql)
-                    self.created[t] = set(cols)
-                for c in cols:
-                    if c not in self.created[t]:
-                        con.execute(f'ALTER TABLE "{t}" ADD COLUMN "{c}"')
-                        self.created[t].add(c)
-                q = ",".join(f'"{c}"' for c in cols)
-                (before,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
-                con.execute(f'INSERT INTO main."{t}" ({q}) SELECT {q} FROM part."{t}"')
-                (after,) = con.execute(f'SELECT coalesce(max(fid), 0) FROM main."{t}"').fetchone()
-                if "tree_id" in cols:
-                    ranges[t] = (before, after)
-            con.commit()
-        finally:
-            con.execute("DETACH DATABASE part")
-        self.parts += 1
-        return ranges
-
-    def remap(self, ranges: Dict[str, tuple], mapping: dict) -> None:
-        """Rewrite ``tree_id`` {old: new} in the rows ``ranges`` (what :meth:`add` returned for a part)."""
-        if not mapping or not ranges:
-            return
-        con = self.con
-        con.execute("CREATE TEMP TABLE IF NOT EXISTS idmap (old INTEGER PRIMARY KEY, new INTEGER)")
-        con.execute("DELETE FROM idmap")
-        con.executemany("INSERT INTO idmap VALUES (?,?)", list(mapping.items()))
-        for t, (lo, hi) in ranges.items():
-            con.execute(f'UPDATE main."{t}" SET tree_id = (SELECT new FROM idmap WHERE old = tree_id) '
-                        f'WHERE fid > ? AND fid <= ? AND tree_id IN (SELECT old FROM idmap)', (lo, hi))
-        con.commit()
-
-    def close(self) -> None:
-        self.con.commit()
-        self.con.close()
-
-
 def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
-    """Concatenate the layers of per-tile GeoPackages into one at ``path`` (:class:`GpkgMerge`).
+    """Concatenate the layers of per-tile GeoPackages into one at ``path`` (:class:`~.io.gpkg.GpkgMerge`).
+
+    The result conforms to GeoPackage 1.2 (GDAL's ``validate_gpkg.py``), has an
+    R-tree per geometry column and carries Sylva's QGIS styles in ``layer_styles``.
 
     ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
     The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
@@ -453,12 +450,14 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
     with atomic_path(path) as tmp:
-        merge = GpkgMerge(tmp)
+        merge = GpkgMerge(tmp, styles=default_styles(LAYERS))
         try:
             for part, mapping in zip(parts, id_maps):
                 merge.remap(merge.add(part), mapping)
-        finally:
-            merge.close()
+        except BaseException:
+            merge.abort()
+            raise
+        merge.close()
     return Path(path)
 
 
@@ -479,7 +478,7 @@ class _OrderedMerge:
     def __init__(self, path: Path, order: Sequence[str]):
         self.path = Path(path)
         self.tmp = temporary_beside(self.path)
-        self.merge = GpkgMerge(self.tmp)
+        self.merge = GpkgMerge(self.tmp, styles=default_styles(LAYERS))
         self.order = list(order)
         self.next = 0
         self.parts: Dict[str, Optional[Path]] = {}
@@ -490,7 +489,7 @@ class _OrderedMerge:
 
     def __exit__(self, kind, value, tb):
         if kind is not None:
-            self.merge.close()
+            self.merge.abort()
             self.tmp.unlink(missing_ok=True)
         return False
 
@@ -586,6 +585,8 @@ class RunReport:
     gpkg: Optional[str]
     tileset: Optional[str]
     compile_seconds: float = 0.0   # of ``seconds``: compiling the numba kernels (a first run after installing)
+    dtm: Optional[str] = None        # dtm.vrt: the tiles' terrain (CRS vertical units), QGIS's 3D terrain
+    chm: Optional[str] = None        # chm.vrt: the tiles' canopy height model (m)
 
     @property
     def points_per_s(self) -> float:
@@ -636,6 +637,17 @@ def _compile_seconds(done, skipped, c0: float) -> float:
     return here + max(per_worker.values(), default=0.0)   # workers compile side by side: the longest one
 
 
+def _write_mosaics(out: Path, records) -> Dict[str, Optional[str]]:
+    """dtm.vrt and chm.vrt of the tiles' rasters (tiles of a run made before Sylva wrote them have none)."""
+    from .raster import write_vrt
+
+    found = {}
+    for kind in ("dtm", "chm"):
+        tiffs = [r["files"][kind] for r in records if Path(r.get("files", {}).get(kind, "")).is_file()]
+        found[kind] = str(write_vrt(out / f"{kind}.vrt", tiffs)) if tiffs else None
+    return found
+
+
 def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), workers: int = 1,
                 scheduler=None, resume: bool = True, progress: Progress = None,
                 cancelled: CancelCheck = None) -> RunReport:
@@ -651,14 +663,165 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     t0 = time.perf_counter()
     c0 = compile_seconds()
     out = Path(out_dir)
+    check_options(options)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: the output folder is a file")
     if not out.parent.is_dir():
         raise InputError(f"{out}: the parent folder does not exist")
+    try:
+        out.mkdir(exist_ok=True)
+        lock = RunLock(out)
+    except OSError as err:
+        raise disk_error(out, err) from None
+    with lock:
+        removed = remove_part_files(out)   # left by a killed run: we hold the folder now
+        try:
+            return _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed)
+        except OSError as err:
+            raise disk_error(err.filename or out, err) from None
+        except sqlite3.Error as err:
+            raise OutputError(f"{out / 'forest.gpkg'}: merging the tiles' layers failed ({err})") from None
+        finally:
+            remove_part_files(out)   # a cancel or an error: what this run was writing
+
+
+def check_options(options: PipelineOptions) -> None:
+    """Refuse NaN, infinite or negative run parameters before any tile is read (:class:`ParameterError`)."""
+    import math
+
+    for name in ("buffer_m", "window_diameter_m", "min_height_m", "ground_cell_m", "crown_base_gap_m"):
+        value = getattr(options, name)
+        try:
+            ok = math.isfinite(float(value)) and float(value) >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ParameterError(f"{name.upper()}={value}: must be a finite number of metres, 0 or more")
+    if not options.window_diameter_m > 0:
+        raise ParameterError(f"WINDOW_DIAMETER_M={options.window_diameter_m}: must be more than 0")
+
+
+def remove_part_files(out: Path) -> int:
+    """Remove every ``.part`` (temporary file of an atomic write) under the run folder ``out``."""
+    n = 0
+    for sub in (out, out / "tiles", out / "parts", out / "models"):
+        if not sub.is_dir():
+            continue
+        for f in sub.rglob(".*.part") if sub != out else sub.glob(".*.part"):
+            try:
+                if f.is_file():
+                    f.unlink()
+                    n += 1
+            except OSError:
+                pass
+    return n
+
+
+class RunLock:
+    """``out/.sylva-run.lock`` (pid, host, start time) held for a run's duration (Sylva, not in the papers).
+
+    A second run into the same folder refuses, naming the first; the lock of a process that
+    no longer exists (on this host) is stale and taken over.  Removed on release.
+    """
+
+    NAME = ".sylva-run.lock"
+
+    def __init__(self, out: Path):
+        import socket
+
+        self.path = Path(out) / self.NAME
+        self.me = {"pid": os.getpid(), "host": socket.gethostname(),
+                   "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.held = False
+
+    def _holder(self) -> Optional[dict]:
+        try:
+            return json.loads(self.path.read_text("utf-8"))
+        except (OSError, ValueError):
+            return None
+
+    @staticmethod
+    def _alive(pid: int) -> bool:
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            return False
+        except (PermissionError, ValueError, TypeError, OverflowError):
+            return True
+        return True
+
+    def __enter__(self):
+        import socket
+
+        data = (json.dumps(self.me) + "\n").encode("utf-8")
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            except FileExistsError:
+                holder = self._holder()
+                if holder is None:                      # being written right now, or garbage
+                    time.sleep(0.2)
+                    holder = self._holder()
+                    if holder is None:
+                        self.path.unlink(missing_ok=True)
+                        continue
+                if holder.get("host") == socket.gethostname() and not self._alive(holder.get("pid", -1)):
+                    self.path.unlink(missing_ok=True)  # stale: its process is gone
+                    continue
+                raise OutputError(
+                    f"{self.path.parent}: another Sylva run is writing into this folder (pid "
+                    f"{holder.get('pid')} on {holder.get('host')}, started {holder.get('started')}); "
+                    f"wait for it to end or choose another OUTPUT_FOLDER (if that run is gone, "
+                    f"remove {self.path})")
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+            self.held = True
+            return self
+        raise OutputError(f"{self.path}: cannot take the run lock of this folder")
+
+    def __exit__(self, *exc):
+        if self.held and (self._holder() or {}).get("pid") == self.me["pid"]:
+            self.path.unlink(missing_ok=True)
+        self.held = False
+        return False
+
+
+def remove_tile_outputs(out: Path, name: str) -> None:
+    """Remove a tile's files (LAZ, GLB, tileset, parts): a failed or foreign tile leaves nothing stale."""
+    paths = part_paths(out, name)
+    for key, path in paths.items():
+        try:
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
+def _stale_names(out: Path, names: set) -> set:
+    """Names of tiles whose outputs lie in ``out`` but which are not tiles of this run."""
+    found = set()
+    for folder, pattern in (("tiles", "*.laz"), ("models", "*.glb"), ("parts", "*.done.json")):
+        for f in (out / folder).glob(pattern):
+            stem = f.name[: -len(".done.json")] if pattern == "*.done.json" else f.stem
+            if stem not in names and not f.name.startswith("."):
+                found.add(stem)
+    return found
+
+
+def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed_parts) -> RunReport:
     for sub in ("tiles", "parts", "models"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    if removed_parts:
+        report(progress, 0.0, f"removed {removed_parts} temporary file(s) left by an interrupted run")
     report(progress, 0.0, "reading tile headers")
     tiles, failures = list_tiles(inputs, crs=options.crs)
     if not tiles:
         raise InputError("no readable tile: " + "; ".join(f["reason"] for f in failures))
+    # two runs into one folder never mix: outputs of tiles that are not this run's go
+    for name in sorted(_stale_names(out, {t.name for t in tiles})):
+        remove_tile_outputs(out, name)
     jobs = make_jobs(tiles, out, options)
     # Largest tiles first (longest-processing-time order): no big tile is left to run alone at the end.
     # forest.gpkg takes the tiles' rows in this order too (deterministic: sizes, then names).
@@ -675,6 +838,9 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
                 skipped.append(job.name)
                 merger.ready(job.name, part_paths(out, job.name)["gpkg"])
             else:
+                # an earlier run's manifest must not vouch for files this run is about to rewrite:
+                # interrupted half-way, the tile would otherwise be "complete" with mixed files
+                part_paths(out, job.name)["manifest"].unlink(missing_ok=True)
                 todo.append(job)
         total = max(len(jobs), 1)
         state = {"done": len(skipped)}
@@ -695,6 +861,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
                         return None
                     return retry
                 failures.append(_failure(job, err))
+                remove_tile_outputs(out, job.name)   # no stale LAZ/GLB of an earlier run stays beside the report
                 merger.ready(job.name, None)
             else:
                 records[job.name] = record
@@ -732,6 +899,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     shutil.rmtree(out / "parts" / "halo", ignore_errors=True)  # scratch: a rerun makes what it needs
     tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
     root = write_root_tileset(out / "models", tilesets) if tilesets else None
+    mosaics = _write_mosaics(out, done)
     peaks: Dict[str, float] = {}
     for r in done:
         if r["name"] in skipped:
@@ -744,7 +912,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
         workers=int(workers), scheduler=None if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
         peak_rss_mb_per_worker=peaks, id_collisions_rewritten=len(maps),
         gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root),
-        compile_seconds=round(_compile_seconds(done, skipped, c0), 3))
+        compile_seconds=round(_compile_seconds(done, skipped, c0), 3), **mosaics)
     atomic_write_bytes(out / "report.json", (json.dumps(result.as_dict(), indent=1, default=str) + "\n").encode())
     atomic_write_bytes(out / "report.txt", result.summary().encode("utf-8"))
     report(progress, 1.0, f"{result.trees} trees")

@@ -28,3 +28,30 @@ class Cancelled(SylvaError):
 
     def __init__(self, message: str = "cancelled by the user"):
         super().__init__(message)
+
+
+class ParameterError(InputError, ValueError):
+    """A parameter value a method refuses (NaN, infinite, out of range).
+
+    Also a ``ValueError``, so callers that caught the ``ValueError`` the core
+    dataclasses used to raise keep working.
+    """
+
+
+class OutputError(SylvaError):
+    """An output cannot be written where asked (it would overwrite an input, wrong extension,
+    read-only or full disk, a folder another run holds); the message names the path."""
+
+
+class DamagedInputError(InputError):
+    """An input file is damaged: truncated, zeroed, a header that disagrees with its points."""
+
+
+def disk_error(path, err: OSError) -> "OutputError":
+    """One line for an OSError met while writing ``path`` (full disk, read-only, permissions)."""
+    import errno
+
+    reason = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+              errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
+              errno.EPERM: "permission denied"}.get(err.errno, err.strerror or str(err))
+    return OutputError(f"{path}: cannot write ({reason}); nothing was left half-written")

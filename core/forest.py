@@ -277,6 +277,7 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
     grounds = _median_kernel(pts[:, 2] - h, pt_off).tolist()
     bounds = pt_off.tolist()
     work = []
+    dense_models = {}
     for k, tree_id in enumerate(ids.tolist()):
         check(cancelled)
         report(progress, 0.9 * k / max(len(ids), 1), f"tree {k + 1} of {len(ids)}")
@@ -292,6 +293,8 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
             # Yan et al. 2009: the full model (B-spline branches, §4) gives the cylinders
             dense = method.model(tree_pts)
             rec = dense.reconstruction
+            if getattr(method, "fitted_wood", False):
+                dense_models[k] = dense
             if len(dense.cylinders["id"]):
                 dense_qsm = measure_qsm(dense.cylinders, dense.branch_parent, xyz, base_z=ground_z,
                                         tree_id=int(tree_id))
@@ -304,14 +307,32 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
     work = [w + d for w, d in zip(work, dbhs)]
     check(cancelled)
     report(progress, 0.9, "skeletons, chains and QSMs")
-    out, forest = _model_forest(cloud, pts, pt_off, work, metrics, options)
+    out, forest = _model_forest(cloud, pts, pt_off, work, metrics, options, set(dense_models))
     report(progress, 0.95, "meshes and leaves")
     _mesh_and_leaf(out, forest, options, cancelled)
+    for k, dense in dense_models.items():
+        # the wood of a fitted dense model is its own tubes (radii and axes fitted to the points),
+        # not the skeleton's generic sweep: what the GLB holds is what was fitted
+        out[k].wood = _fitted_wood(dense, out[k].base_local, options.lod)
     report(progress, 1.0, "trees modelled")
     return out
 
 
-def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions):
+def _fitted_wood(dense, base_local: np.ndarray, lod: int):
+    """The tubes of a fitted dense model (:func:`sylva.core.reconstruct.levelset.tube_mesh`) as a trimesh,
+    origin at the tree's base; ``lod`` 0 / 1 / 2 sweeps the thickest branches with 8 / 10 / 14 sides."""
+    import trimesh
+
+    from .reconstruct.levelset import tube_mesh
+
+    sides = {0: 8, 1: 10}.get(int(lod), 14)
+    curves, radii = ((dense.curves, dense.curve_radii) if dense.mesh_curves is None
+                     else (dense.mesh_curves, dense.mesh_radii))
+    v, f = tube_mesh(curves, radii, sides=sides, twig_sides=max(4, sides // 2 + 1))
+    return trimesh.Trimesh(v - base_local, f, process=False)
+
+
+def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions, fitted=frozenset()):
     """Skeletons, radii, chains, QSMs and records of the trees of :func:`model_trees` on their joined forest.
 
     ``pts`` the trees' points (tile-local, tree by tree: ``pt_off``), ``work`` per tree (tree_id, metrics
@@ -344,6 +365,8 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions):
     if options.leaves == "auto":
         conical = _conical(pts, pt_off, np.array([w[2] + metrics.crown_base_height[w[1]] for w in work]))
         kinds = ["needles" if c else "broadleaf" for c in conical.tolist()]
+        # a wood model fitted to a dense scan gets no leaf cards unless they are asked for
+        kinds = ["none" if t in fitted else kd for t, kd in enumerate(kinds)]
     local_parent = _local_parent(parent, off)
     bases = cloud.from_local(nodes[off[:-1]]).tolist()
     nb = off.tolist()
@@ -352,7 +375,7 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions):
         a, b = nb[t], nb[t + 1]
         qsm_method = "skeleton_edges"
         if w[4] is not None:
-            qsm, qsm_method = w[4], "bspline_cylinders"
+            qsm, qsm_method = w[4], ("fitted_cylinders" if t in fitted else "bspline_cylinders")
             qsm.dbh_m, qsm.dbh_source = float(dbh), source
         record = _record(w, dbh, source, bases[t], len(bset) - 1, lengths[t], volumes[t], kinds[t], qsm, qsm_method,
                          bounds[t + 1] - bounds[t] < options.min_points)

@@ -55,7 +55,7 @@ from typing import Any, Optional, Tuple
 import numpy as np
 
 from .cloud import PointCloud
-from .errors import InputError, SylvaError
+from .errors import EmptyInputError, InputError, SylvaError
 from .segment import NormalizedCut
 
 #: Local frames are anchored on multiples of this many metres (a common multiple of
@@ -350,7 +350,85 @@ def part_paths(out_dir, name: str) -> dict:
         "glb": out / "models" / f"{name}.glb",
         "tileset": out / "models" / "tileset" / name,
         "manifest": out / "parts" / f"{name}.done.json",
+        "dtm": out / "dtm" / f"{name}.tif",
+        "chm": out / "chm" / f"{name}.tif",
     }
+
+
+#: Pixel of the run's terrain and canopy rasters (metres): dtm/<tile>.tif and chm/<tile>.tif, joined in
+#: dtm.vrt and chm.vrt (the DTM is what QGIS's 3D view can use as its terrain).
+DTM_PIXEL_M = 1.0
+CHM_PIXEL_M = 0.5
+
+
+def _fill_gaps(grid: np.ndarray, passes: int = 2) -> np.ndarray:
+    """Empty cells (between scan lines) take the highest of their 3 x 3 neighbours, ``passes`` times."""
+    from scipy import ndimage
+
+    out = grid.copy()
+    for _ in range(passes):
+        empty = np.isnan(out)
+        if not empty.any():
+            break
+        high = ndimage.maximum_filter(np.where(empty, -np.inf, out), size=3, mode="nearest")
+        fill = empty & np.isfinite(high)
+        out[fill] = high[fill]
+    return out
+
+
+def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
+    """The tile's DTM (CRS vertical units, like the models' z) and CHM (metres above ground) GeoTIFFs
+    over its own bounds, from its buffered, normalised cloud (Sylva, not in a paper).
+
+    The DTM is the ground surface that gave the heights (the TIN of
+    :func:`sylva.core.terrain.normalize`): each point's ``z - height`` averaged
+    per cell (the TIN is linear within a cell, so this is its value there to a
+    few cm; no second triangulation), cells without points filled from the
+    nearest one, on a grid aligned on multiples of the pixel, so neighbouring
+    tiles abut; the CHM is the highest first return per cell
+    (:func:`sylva.core.terrain.canopy_height_model`, not pit-free: it is cheap)
+    pasted on the same kind of grid, its empty cells given the highest of their
+    neighbours twice (:func:`_fill_gaps`).  Returns {"dtm": path, "chm": path}.
+    """
+    from scipy import ndimage
+
+    from .raster import aligned_raster, paste, write_geotiff
+    from .terrain import canopy_height_model
+
+    hm, vm = work.units.horizontal_m, work.units.vertical_m
+    pad = 2 * CHM_PIXEL_M / hm
+    xmin, ymin, xmax, ymax = job.bounds
+    near = ((work.xyz[:, 0] >= xmin - pad) & (work.xyz[:, 0] <= xmax + pad)
+            & (work.xyz[:, 1] >= ymin - pad) & (work.xyz[:, 1] <= ymax + pad))
+    # DTM: every point's ground elevation (z minus its height: the TIN under it) averaged per cell, which
+    # is the TIN at the cell (linear within it); cells without points take their nearest cell's value.
+    dtm = aligned_raster(job.bounds, DTM_PIXEL_M / hm, work.crs)
+    xyz = work.xyz[near]
+    ground = xyz[:, 2] - np.asarray(work.attrs["height"], dtype=np.float64)[near] / vm
+    row, col = dtm.index_of(xyz[:, 0], xyz[:, 1])
+    inside = dtm.inside(row, col)
+    if inside.any():
+        cell = row[inside] * dtm.cols + col[inside]
+        total = np.bincount(cell, ground[inside], minlength=dtm.rows * dtm.cols)
+        count = np.bincount(cell, minlength=dtm.rows * dtm.cols)
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(dtm.shape)
+        empty = np.isnan(mean)
+        if empty.any():
+            _, (ri, ci) = ndimage.distance_transform_edt(empty, return_indices=True)
+            mean = mean[ri, ci]
+        dtm.data[:] = mean
+    chm = aligned_raster(job.bounds, CHM_PIXEL_M / hm, work.crs)
+    if near.any():
+        try:
+            paste(chm, canopy_height_model(work.subset(near), CHM_PIXEL_M, pit_free=False))
+        except EmptyInputError:  # no first return near the tile: its CHM stays no data
+            pass
+        chm.data[:] = _fill_gaps(chm.data)
+    out = {}
+    for name, raster in (("dtm", dtm), ("chm", chm)):
+        paths[name].parent.mkdir(parents=True, exist_ok=True)
+        out[name] = str(write_geotiff(paths[name], raster))
+    return out
 
 
 def _top_tiles(cloud: AnchoredCloud, tops, min_height_m: float) -> np.ndarray:
@@ -403,6 +481,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     kept_idx = np.flatnonzero(keep)
     # triangles wider than the buffer allows would make heights depend on the tiling
     work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=opts.ground_cell_m, tin_radius_m=opts.buffer_m / 2)
+    rasters = write_tile_rasters(work, job, paths)
     report(progress, 0.1, f"{job.name}: tree tops")
     tops = find_tree_tops(work, window=FixedWindow(opts.window_diameter_m), min_height_m=opts.min_height_m,
                           cancelled=cancelled)
@@ -434,7 +513,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     columns["tile"] = np.array([job.name] * len(m), dtype=object)
     tables = []
     skeletons = models_3d = None
-    files = {"las": str(paths["las"]), "gpkg": str(paths["gpkg"])}
+    files = {"las": str(paths["las"]), "gpkg": str(paths["gpkg"]), **rasters}
     if opts.reconstruct and len(m):
         report(progress, 0.7, f"{job.name}: modelling {len(m)} trees")
         from .export.gltf import write_glb

@@ -16,8 +16,6 @@ data value goes into GDAL's ``GDAL_NODATA`` tag (42113).
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Tuple
@@ -197,15 +195,9 @@ def _pam_xml(wkt: str) -> str:
 
 
 def _atomic_write_bytes(path: Path, payload: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from .atomic import atomic_write_bytes   # the umask's permissions, not mkstemp's 0600
+
+    atomic_write_bytes(path, payload)
 
 
 def write_geotiff(path, raster: Raster, compress: bool = True) -> Path:
@@ -234,19 +226,14 @@ def write_geotiff(path, raster: Raster, compress: bool = True) -> Path:
         _DEFLATE = _deflate_available()
     compression = "zlib" if (compress and _DEFLATE) else None
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    os.close(fd)
-    try:
+    from .atomic import atomic_path   # the umask's permissions (0666 minus it), not mkstemp's 0600
+
+    with atomic_path(path) as tmp:
         tifffile.imwrite(
-            tmp, np.ascontiguousarray(raster.data, dtype=np.float32),
+            str(tmp), np.ascontiguousarray(raster.data, dtype=np.float32),
             compression=compression, photometric="minisblack",
             metadata=None, extratags=extratags,
         )
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     aux = Path(str(path) + ".aux.xml")
     horizontal = _horizontal_crs(raster.crs)
     if horizontal is not None and epsg is None:
@@ -306,3 +293,83 @@ def read_geotiff(path) -> Raster:
                 crs = pyproj.CRS.from_epsg(int(value))
                 break
     return Raster(data=data, x0=x0, y0=y0, pixel=pixel, crs=crs)
+
+
+# --------------------------------------------------------------------------- tile grids and mosaics
+
+def aligned_raster(bounds, pixel: float, crs=None) -> Raster:
+    """An all-NaN raster covering ``bounds`` (xmin, ymin, xmax, ymax), its edges snapped outwards to
+    multiples of ``pixel`` (Sylva, not in a paper).
+
+    Rasters of abutting tiles made this way share one grid and do not overlap
+    when the tile edges fall on multiples of ``pixel``, so a VRT
+    (:func:`write_vrt`) joins them without resampling.
+    """
+    xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+    x0 = np.floor(xmin / pixel) * pixel
+    y0 = np.ceil(ymax / pixel) * pixel
+    cols = max(1, int(np.ceil((xmax - x0) / pixel - 1e-9)))
+    rows = max(1, int(np.ceil((y0 - ymin) / pixel - 1e-9)))
+    return Raster(np.full((rows, cols), np.nan, np.float32), x0, y0, pixel, crs)
+
+
+def paste(target: Raster, source: Raster) -> Raster:
+    """Copy ``source``'s cells into ``target`` where they overlap (same pixel, grids offset by whole
+    pixels, as :func:`aligned_raster` and the CHM grid make them); returns ``target``."""
+    if abs(target.pixel - source.pixel) > 1e-9 * target.pixel:
+        raise ValueError(f"pixel sizes differ: {target.pixel} and {source.pixel}")
+    dc = int(round((source.x0 - target.x0) / target.pixel))
+    dr = int(round((target.y0 - source.y0) / target.pixel))
+    r0, c0 = max(dr, 0), max(dc, 0)
+    r1, c1 = min(dr + source.rows, target.rows), min(dc + source.cols, target.cols)
+    if r1 > r0 and c1 > c0:
+        target.data[r0:r1, c0:c1] = source.data[r0 - dr:r1 - dr, c0 - dc:c1 - dc]
+    return target
+
+
+def write_vrt(path, tiffs, crs=None) -> Path:
+    """A GDAL virtual raster (VRT XML) mosaicking single-band float32 GeoTIFFs of one pixel size.
+
+    Sources are referenced relative to the VRT; NaN is no data (a NaN cell of
+    one source does not hide another's value).  Written atomically.  GDAL's
+    VRT format: https://gdal.org/drivers/raster/vrt.html (Sylva, not in a paper).
+    """
+    from .atomic import atomic_write_bytes
+
+    path = Path(path)
+    heads = [(Path(t), read_geotiff(t)) for t in tiffs]
+    if not heads:
+        raise InputError(f"{path}: no raster to mosaic")
+    pixel = heads[0][1].pixel
+    for t, r in heads:
+        if abs(r.pixel - pixel) > 1e-9 * pixel:
+            raise InputError(f"{t}: pixel {r.pixel} differs from {pixel} of {heads[0][0]}")
+    crs = crs if crs is not None else heads[0][1].crs
+    x0 = min(r.x0 for _, r in heads)
+    y0 = max(r.y0 for _, r in heads)
+    x1 = max(r.bounds()[2] for _, r in heads)
+    y1 = min(r.bounds()[1] for _, r in heads)
+    cols, rows = int(round((x1 - x0) / pixel)), int(round((y0 - y1) / pixel))
+    lines = [f'<VRTDataset rasterXSize="{cols}" rasterYSize="{rows}">']
+    if crs is not None:
+        lines.append(f'  <SRS dataAxisToSRSAxisMapping="1,2">{escape(crs.to_wkt())}</SRS>')
+    lines += [f"  <GeoTransform>{x0!r}, {pixel!r}, 0.0, {y0!r}, 0.0, {-pixel!r}</GeoTransform>",
+              '  <VRTRasterBand dataType="Float32" band="1">', "    <NoDataValue>nan</NoDataValue>"]
+    for t, r in sorted(heads, key=lambda h: (-h[1].y0, h[1].x0, str(h[0]))):
+        try:
+            rel = os.path.relpath(t.resolve(), path.resolve().parent)
+        except ValueError:  # another drive (Windows)
+            rel = None
+        name = escape(rel if rel is not None else str(t.resolve()))
+        xo, yo = int(round((r.x0 - x0) / pixel)), int(round((y0 - r.y0) / pixel))
+        lines += ["    <ComplexSource>",
+                  f'      <SourceFilename relativeToVRT="{0 if rel is None else 1}">{name}</SourceFilename>',
+                  "      <SourceBand>1</SourceBand>",
+                  f'      <SourceProperties RasterXSize="{r.cols}" RasterYSize="{r.rows}" DataType="Float32"/>',
+                  f'      <SrcRect xOff="0" yOff="0" xSize="{r.cols}" ySize="{r.rows}"/>',
+                  f'      <DstRect xOff="{xo}" yOff="{yo}" xSize="{r.cols}" ySize="{r.rows}"/>',
+                  "      <NODATA>nan</NODATA>",
+                  "    </ComplexSource>"]
+    lines += ["  </VRTRasterBand>", "</VRTDataset>", ""]
+    atomic_write_bytes(path, "\n".join(lines).encode("utf-8"))
+    return path

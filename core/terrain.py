@@ -681,8 +681,8 @@ def _ground_elevation(cloud: PointCloud, loc: np.ndarray, query_local: np.ndarra
     mask = ground_mask(cloud) if ground is None else np.asarray(ground, dtype=bool)
     if not mask.any():
         raise EmptyInputError(
-            f"{cloud.name}: no ground points (class 2); run ground classification "
-            "(classify_ground / normalize(..., classify=SMRF())) or use a tile that has a ground class")
+            f"{cloud.name}: no ground points (class 2); classify the ground first ('Normalize height', "
+            "sylva:normalizeheight with CLASSIFY_GROUND=always) or use a tile that has a ground class")
     g = loc[mask]
     # One elevation per distinct ground position, or per ``cell_m`` cell: the lowest (duplicates
     # break the TIN; at 0.5 m the triangulation of a 20 pts/m2 tile costs a quarter).

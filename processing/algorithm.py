@@ -284,20 +284,76 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         lacking = deps.missing()
         if lacking:
             raise QgsProcessingException(deps.install_hint(lacking))
+        from ..algorithms.common import OutputGuard, check_paths
+        from ..core.errors import disk_error
+
         parameters = self._plain(parameters)
         problem = self._range_problem(parameters, context)
         if problem:
             raise QgsProcessingException(problem)
-        args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
+        guard = None
         try:
+            args = {p.name: self._value(p, parameters, context) for p in self.spec.params}
+            # outputs checked before any computation, as the CLI does (one shared check)
+            sinks = {p.name: self._sink_path(parameters, p.name, context)
+                     for p in self.spec.outputs if p.kind == S.VECTOR_OUT}
+            raw = {p.name: self.parameterAsString(parameters, p.name, context)
+                   for p in self.spec.inputs if p.kind == S.VECTOR}
+            check_paths(self.spec, args, raw=raw, outputs=sinks, vector_suffixes=())
+            guard = OutputGuard(self.spec, args)
             result = self.spec.run(args, QgisFeedback(feedback))
         except SylvaError as exc:
-            raise QgsProcessingException(str(exc)) from None
+            if guard is not None:
+                guard.rollback()
+            raise QgsProcessingException(" ".join(str(exc).split())) from None
+        except OSError as exc:   # a full disk, a read-only folder: one line, nothing half-written
+            if guard is not None:
+                guard.rollback()
+            where = exc.filename or (guard.describe() if guard is not None else "output")
+            raise QgsProcessingException(str(disk_error(where, exc))) from None
+        except BaseException:
+            if guard is not None:
+                guard.rollback()
+            raise
         outputs = dict(result.files)
+        shared = self._shared_geopackages(parameters, context, list(result.vectors))
         for name, table in result.vectors.items():
-            outputs[name] = self._write_sink(parameters, name, table, context, feedback)
+            params = parameters
+            if name in shared:
+                params = dict(parameters)
+                params[name] = _layer_of(parameters[name], shared[name], table)
+            outputs[name] = self._write_sink(params, name, table, context, feedback)
         outputs.update(result.values)
+        # -- the run's layers (folder outputs Processing does not load itself), styled: processing/outputs.py
+        from .outputs import load_on_completion
+
+        load_on_completion(self.spec.id, result.files, result.values, context)
         return outputs
+
+    def _sink_path(self, parameters, name, context):
+        """The file a feature sink will write (None for memory layers and temporary outputs)."""
+        try:
+            text = self.parameterAsOutputLayer(parameters, name, context) or ""
+        except Exception:  # noqa: BLE001 — an unusual destination: QGIS checks it itself
+            return None
+        if not text or text.startswith(("memory:", "ogr:", "postgres:", "TEMPORARY_OUTPUT")) or "://" in text:
+            return None
+        return text.split("|", 1)[0]
+
+    def _shared_geopackages(self, parameters, context, names) -> dict:
+        """{output: file} for the sinks of this run that name one plain ``.gpkg`` file.
+
+        QGIS lets each such sink overwrite the file (only the last layer stays);
+        Sylva makes each its own layer of the file instead, as the CLI does.
+        """
+        import os
+
+        files = {}
+        for name in names:
+            dest = self.parameterAsOutputLayer(parameters, name, context) or ""
+            if dest.lower().endswith(".gpkg") and "|" not in dest and not dest.startswith("ogr:"):
+                files.setdefault(os.path.normcase(os.path.abspath(dest)), []).append(name)
+        return {n: path for path, group in files.items() if len(group) > 1 for n in group}
 
     def _write_sink(self, parameters, name, table, context, feedback):
         fields = QgsFields()
@@ -339,6 +395,20 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         """Have QGIS apply ``resources/styles/<style>`` when it loads the output at the end of the run."""
         if style and context.willLoadLayerOnCompletion(dest_id):
             context.layerToLoadOnCompletionDetails(dest_id).setPostProcessor(StyleOnLoad.get(style))
+
+
+def _layer_of(value, path: str, table):
+    """The sink ``value`` redirected to layer ``table.name`` of the GeoPackage ``path`` (loading details kept)."""
+    from qgis.core import QgsProcessingOutputLayerDefinition, QgsProperty
+
+    quoted = path.replace("\\", "\\\\").replace("'", "\\'")
+    geometry = " (geom)" if table.geometry_type != "none" else ""
+    uri = f"ogr:dbname='{quoted}' table=\"{table.name}\"{geometry}"
+    if isinstance(value, QgsProcessingOutputLayerDefinition):
+        value = QgsProcessingOutputLayerDefinition(value)
+        value.sink = QgsProperty.fromValue(uri)
+        return value
+    return uri
 
 
 class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):

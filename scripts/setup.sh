@@ -17,7 +17,7 @@ cd "$root"
 sudo_cmd=""
 if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
 
-debs="qgis python3-qgis qgis-providers python3-venv"
+debs="qgis python3-qgis qgis-providers python3-gdal python3-venv"
 if [ "$viewers" = 1 ]; then
     debs="$debs chromium xvfb"
     command -v node >/dev/null 2>&1 || debs="$debs nodejs npm"

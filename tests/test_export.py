@@ -229,7 +229,7 @@ def test_obj_offsets_and_materials(tmp_path):
     paths = write_obj(models, tmp_path / "trees.obj", frame)
     names = {p.name for p in paths}
     assert {"trees.obj", "trees.mtl", "trees.prj", "trees.offset.txt", "trees.origin.json"} <= names
-    assert any(n.startswith("leaf_") and n.endswith(".png") for n in names)
+    assert any(n.startswith("trees_leaf_") and n.endswith(".png") for n in names)
     origin = np.array((tmp_path / "trees.offset.txt").read_text().split(), float)
     lines = (tmp_path / "trees.obj").read_text().splitlines()
     v = np.array([ln.split()[1:] for ln in lines if ln.startswith("v ")], float)
@@ -243,7 +243,7 @@ def test_obj_offsets_and_materials(tmp_path):
     faces = [ln for ln in lines if ln.startswith("f ")]
     assert len(faces) == sum(len(m.wood.faces) + len(m.leaves.faces) for m in models)
     mtl = (tmp_path / "trees.mtl").read_text()
-    assert "newmtl bark" in mtl and "map_d leaf_" in mtl
+    assert "newmtl bark" in mtl and "map_d trees_leaf_" in mtl
     assert [ln for ln in lines if ln.startswith("o ")] == [f"o {m.name}" for m in models]
 
 

@@ -248,11 +248,24 @@ def test_qgis_output_loads_with_its_3d_style(sylva_provider, modelled):
 
     symbol = sip.cast(sip.cast(renderer, QgsVectorLayer3DRenderer).symbol(), QgsPolygon3DSymbol)
     assert symbol.type() == "polygon"
-    assert symbol.altitudeClamping() == Qgs3DTypes.AltClampAbsolute
+    # each tree stands on the terrain (QGIS 3.22's new 3D view: flat at 0 m; or a DEM): z + terrain - base_z
+    assert symbol.altitudeClamping() == Qgs3DTypes.AltClampRelative
+    assert symbol.altitudeBinding() == Qgs3DTypes.AltBindCentroid
     assert symbol.extrusionHeight() == 0.0
-    # the feature's z values are the trees' own heights (absolute clamping keeps them)
-    z = [v.z() for v in next(layer.getFeatures()).geometry().vertices()]
+    from qgis.core import QgsExpressionContext, QgsExpressionContextUtils
+
+    height = symbol.dataDefinedProperties().property(QgsPolygon3DSymbol.PropertyHeight)
+    assert height.isActive()
+    feature = next(layer.getFeatures())
+    expression_context = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+    expression_context.setFeature(feature)
+    offset, ok = height.valueAsDouble(expression_context, 0.0)
+    assert ok and offset == pytest.approx(-models[0].base[2])
+    # the feature's z values are the trees' own heights; with the offset the tree's base is at the terrain
+    z = [v.z() for v in feature.geometry().vertices()]
     assert min(z) == pytest.approx(models[0].base[2] + models[0].wood_arrays()[0][:, 2].min(), abs=1e-3)
+    assert min(z) + offset == pytest.approx(models[0].wood_arrays()[0][:, 2].min(), abs=1e-3)
+    assert abs(min(z) + offset) < 1.0
 
 
 @pytest.mark.parametrize("qml, uri", [

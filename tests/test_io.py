@@ -550,8 +550,8 @@ def test_read_xyz_bad_input(tmp_path):
         read_xyz(tmp_path / "two.xyz")
     with pytest.raises(InputError, match=r"nothere\.xyz: file not found"):
         read_xyz(tmp_path / "nothere.xyz")
-    with pytest.raises(InputError, match=r"cloud\.ply.*unknown point-cloud type"):
-        read_cloud(tmp_path / "cloud.ply")
+    with pytest.raises(InputError, match=r"cloud\.e57.*unknown point-cloud type"):
+        read_cloud(tmp_path / "cloud.e57")
 
 
 # ------------------------------------------------------------------ bad input

@@ -134,7 +134,7 @@ def dense_and_sparse(tmp_path_factory):
 def _check_qsm_outputs(trees, cyl, br, tcsv, ccsv, bcsv, truth):
     t1 = {k: trees.columns[k][list(trees.columns["tree_id"]).index(1)] for k in trees.columns}
     t2 = {k: trees.columns[k][list(trees.columns["tree_id"]).index(2)] for k in trees.columns}
-    assert t1["method"] == "variational_kmeans" and t1["qsm_method"] == "bspline_cylinders"
+    assert t1["method"] == "level_set_qsm" and t1["qsm_method"] == "fitted_cylinders"
     assert t2["method"] in ("greedy_skeleton", "guided_growth") and t2["qsm_method"] == "skeleton_edges"
     assert t1["dbh_source"] == "measured" and abs(t1["dbh"] - truth["dbh"]) < 0.01     # within 1 cm
     assert t1["total_volume"] == pytest.approx(truth["total"], rel=0.05)      # within 5 %
@@ -165,7 +165,7 @@ def _check_qsm_outputs(trees, cyl, br, tcsv, ccsv, bcsv, truth):
     r1 = next(r for r in rows if r["tree_id"] == "1")
     assert float(r1["dbh_m"]) == pytest.approx(t1["dbh"], rel=1e-6)
     assert float(r1["total_volume_m3"]) == pytest.approx(t1["total_volume"], rel=1e-6)
-    assert r1["qsm_method"] == "bspline_cylinders" and r1["dbh_source"] == "measured"
+    assert r1["qsm_method"] == "fitted_cylinders" and r1["dbh_source"] == "measured"
     crow = list(csv.DictReader(open(ccsv)))
     assert len(crow) == len(cyl)
     assert sum(float(r["radius"]) ** 2 * float(r["length"]) * np.pi for r in crow

@@ -1,97 +1,66 @@
-"""scripts/render_3d.py: QGIS's own 3D engine draws the exported trees (under Xvfb) into a non-empty PNG."""
-import os
-import shutil
-import subprocess
+"""The README's pictures are renders of QGIS (scripts/render_3d.py; the desktop check is test_desktop_outputs.py)."""
 import sys
 from pathlib import Path
 
-import numpy as np
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "render_3d.py"
-SCREENSHOT = ROOT / "resources" / "screenshots" / "trees_3d.png"
+sys.path.insert(0, str(ROOT / "scripts"))
+import render_3d  # noqa: E402
+
+SHOTS = ROOT / "resources" / "screenshots"
 
 
-def _pixels(png: Path) -> np.ndarray:
-    """(h, w, 3) uint8 RGB of a PNG (QImage: no Pillow needed)."""
-    from qgis.PyQt.QtGui import QImage
-
-    image = QImage(str(png)).convertToFormat(QImage.Format_RGB888)
-    assert not image.isNull(), f"{png} is not an image"
-    h, w = image.height(), image.width()
-    ptr = image.constBits()
-    ptr.setsize(image.bytesPerLine() * h)
-    rows = np.frombuffer(ptr, dtype=np.uint8).reshape(h, image.bytesPerLine())[:, :3 * w]
-    return rows.reshape(h, w, 3).copy()
+def test_readme_pictures_are_the_default_3d_view_and_the_map(qgis_app):
+    readme = (ROOT / "README.md").read_text()
+    for name in ("trees_3d.png", "crowns_2d.png"):
+        assert (SHOTS / name).exists(), "scripts/render_3d.py writes it"
+        assert f"resources/screenshots/{name}" in readme
+    trees = render_3d.tree_pixels(render_3d.pixels(SHOTS / "trees_3d.png"))
+    assert trees.mean() > 0.02
+    rgb = render_3d.pixels(SHOTS / "crowns_2d.png").astype(int)
+    assert ((rgb[..., 1] > rgb[..., 0] + 10) & (rgb[..., 1] > rgb[..., 2] + 5)).mean() > 0.2
 
 
-def _tree_pixels(rgb: np.ndarray) -> np.ndarray:
-    """Pixels that differ from the background (the most common colour) by more than 12 levels."""
-    colours, counts = np.unique(rgb.reshape(-1, 3), axis=0, return_counts=True)
-    background = colours[np.argmax(counts)].astype(int)
-    return np.abs(rgb.astype(int) - background).max(axis=2) > 12
+def test_tree_pixels_are_the_bark_colour_not_the_maps():
+    import numpy as np
+
+    bark = np.array([[[139, 90, 43], [70, 45, 22], [200, 140, 70]]], dtype=np.uint8)
+    maps = np.array([[[235, 235, 235], [50, 50, 50], [46, 125, 50], [120, 198, 121], [255, 255, 255]]],
+                    dtype=np.uint8)
+    assert render_3d.tree_pixels(bark).all()
+    assert not render_3d.tree_pixels(maps).any()
 
 
-@pytest.fixture(scope="module")
-def models_gpkg(sample_laz, tmp_path_factory):
-    """MODELS_3D of a 25 m corner of the sample (reconstructed and exported in-process)."""
-    from sylva.algorithms import get
-    from sylva.algorithms.spec import Feedback
-    from sylva.core.export.gltf import write_glb
-    from sylva.core.export.model import ExportFrame, TreeModel
-    from sylva.core.forest import ModelOptions, model_trees
-    from sylva.core.io import read_cloud
-    from sylva.core.io.gpkg import write_gpkg
-    from sylva.core.measure import tree_metrics
-    from sylva.core.segment import segment_trees
-    from sylva.core.terrain import normalize
+def test_3d_style_stands_models_without_base_z_on_their_lowest_point(qgis_app):
+    """models_3d.qml's height is -base_z, or minus the lowest vertex when a layer has no base_z."""
+    from qgis._3d import Qgs3D, QgsPolygon3DSymbol, QgsVectorLayer3DRenderer
+    from qgis.core import (QgsApplication, QgsExpressionContext, QgsExpressionContextUtils, QgsFeature,
+                           QgsGeometry, QgsVectorLayer)
+    from qgis.PyQt import sip
 
-    cloud = read_cloud(sample_laz)
-    x0, y0 = cloud.xyz[:, 0].min(), cloud.xyz[:, 1].min()
-    corner = normalize(cloud.subset((cloud.xyz[:, 0] < x0 + 25) & (cloud.xyz[:, 1] < y0 + 25)))
-    labels = segment_trees(corner)
-    trees = model_trees(corner, labels, tree_metrics(corner, labels), ModelOptions(lod=0, leaves="none"))
-    models = [TreeModel(t.tree_id, [t.record["base_x"], t.record["base_y"], t.record["base_z"]], t.wood, None,
-                        t.record) for t in trees]
-    folder = tmp_path_factory.mktemp("render")
-    glb = folder / "trees.glb"
-    write_glb(models, glb, ExportFrame.from_cloud(corner))
-    alg = get("exportmodels")
-    table = alg.run({**{p.name: p.default for p in alg.params}, "INPUT": str(glb)}, Feedback()).vectors["MODELS_3D"]
-    assert len(table) == len(models)
-    return write_gpkg(folder / "trees_3d.gpkg", [table]), len(models)
+    if QgsApplication.renderer3DRegistry().rendererMetadata("vector") is None:
+        Qgs3D.initialize()   # the desktop does it at start; a bare QgsApplication does not
 
+    from sylva.processing.outputs import StyledOutput
 
-def test_qgis_3d_view_draws_the_trees(models_gpkg, tmp_path):
-    if shutil.which("xvfb-run") is None:
-        pytest.skip("xvfb-run is absent: QGIS's 3D engine needs an X display with OpenGL "
-                    "(Debian: apt-get install -y xvfb)")
-    gpkg, n_trees = models_gpkg
-    out = tmp_path / "trees.png"
-    env = dict(os.environ, PROJ_DATA=os.environ.get("PROJ_DATA", "/usr/share/proj"))
-    env.setdefault("XDG_RUNTIME_DIR", f"/tmp/runtime-{os.getuid()}")
-    Path(env["XDG_RUNTIME_DIR"]).mkdir(mode=0o700, exist_ok=True)
-    run = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1280x1024x24", sys.executable, str(SCRIPT),
-                          f"--models={gpkg}", f"--out={out}", "--width=480", "--height=320"],
-                         capture_output=True, text=True, env=env, timeout=180)
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert f"{n_trees} trees" in run.stdout
-    rgb = _pixels(out)
-    assert rgb.shape == (320, 480, 3)
-    trees = _tree_pixels(rgb)
-    assert 0.005 < trees.mean() < 0.5          # the trees are drawn, and they are not everything
-    # drawn with the style's bark material (Phong-shaded brown: red > green > blue)
-    r, g, b = (rgb[trees].astype(int).mean(axis=0))
-    assert r > g > b
-    # the trees stand upright: their pixels span much more height than the first and last rows
-    rows = np.flatnonzero(trees.any(axis=1))
-    assert rows.max() - rows.min() > 0.4 * rgb.shape[0]
+    for fields, base in (("&field=base_z:double", 250.0), ("", None)):
+        layer = QgsVectorLayer(f"MultiPolygonZ?crs=EPSG:32632{fields}", "m", "memory")
+        feature = QgsFeature(layer.fields())
+        feature.setGeometry(QgsGeometry.fromWkt(
+            "MultiPolygonZ(((0 0 251, 1 0 251, 0 1 270, 0 0 251)))"))
+        if base is not None:
+            feature.setAttributes([base])
+        layer.dataProvider().addFeatures([feature])
+        StyledOutput.get("models_3d.qml").postProcessLayer(layer, _NoProject(), None)
+        renderer = sip.cast(layer.renderer3D(), QgsVectorLayer3DRenderer)
+        prop = sip.cast(renderer.symbol(), QgsPolygon3DSymbol).dataDefinedProperties().property(
+            QgsPolygon3DSymbol.PropertyHeight)
+        context = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+        context.setFeature(next(layer.getFeatures()))
+        value, ok = prop.valueAsDouble(context, 0.0)
+        assert ok and value == (-250.0 if base is not None else -251.0)
 
 
-def test_readme_picture_is_not_empty(qgis_app):
-    assert SCREENSHOT.exists(), "python scripts/render_3d.py (under xvfb-run) writes it"
-    rgb = _pixels(SCREENSHOT)
-    trees = _tree_pixels(rgb)
-    assert trees.mean() > 0.01
-    assert "resources/screenshots/trees_3d.png" in (ROOT / "README.md").read_text()
+class _NoProject:
+    @staticmethod
+    def project():
+        return None

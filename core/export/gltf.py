@@ -198,12 +198,19 @@ class _Builder:
         self.accessors: List[str] = []
 
     def view(self, data, target: Optional[int] = None) -> int:
-        """A buffer view of ``data`` (bytes or a C-contiguous array), 8-byte aligned."""
+        """A buffer view of ``data`` (bytes or a C-contiguous array), 8-byte aligned.
+
+        glTF requires ``byteLength >= 1``: empty data (a string column that is empty for
+        every tree, such as ``flags``) becomes one zero byte, which its string offsets
+        (all 0) never reach (Sylva, not in the papers).
+        """
         pad = (-self.size) % 8
         if pad:
             self.parts.append(bytes(pad))
             self.size += pad
         n = data.nbytes if isinstance(data, np.ndarray) else len(data)
+        if n == 0:
+            data, n = b"\0", 1
         self.views.append('{"buffer":0,"byteOffset":%d,"byteLength":%d%s}'
                           % (self.size, n, "" if target is None else ',"target":%d' % target))
         self.parts.append(data)

@@ -6,11 +6,14 @@
 CRS grid axes and units (x grid east, y grid north, z up), RELATIVE TO THE
 ORIGIN, so that 32-bit tools such as Blender keep millimetre precision:
 ``CRS coordinates = vertex + origin``.  In Blender import with Forward = Y,
-Up = Z.  Side files: ``trees.mtl``, ``leaf_<shape>.png`` (RGBA; the MTL
-uses it as ``map_Kd`` and ``map_d``), ``trees.prj`` (the CRS, ESRI WKT),
+Up = Z.  Side files: ``trees.mtl``, ``trees_leaf_<shape>.png`` (RGBA; the MTL
+uses it as ``map_Kd`` and ``map_d``; named after the export, so that a second export into
+the same folder does not overwrite the first one's textures), ``trees.prj`` (the CRS, ESRI WKT),
 ``trees.origin.json`` (origin in CRS coordinates, CRS WKT/EPSG, units) and
 ``trees.offset.txt`` (the origin as one line ``x y z``, the convention of
-CloudCompare's and BlenderGIS's shift files).  Texture v follows OBJ (0 at
+CloudCompare's and BlenderGIS's shift files).  ``mtllib`` and ``map_Kd`` take
+whitespace-separated file names, so the MTL and texture file names have every space
+replaced by ``_`` (Sylva, not in the papers): ``my trees.obj`` refers to ``my_trees.mtl``.  Texture v follows OBJ (0 at
 the bottom of the image), as :mod:`sylva.core.leaves` already does.
 """
 from __future__ import annotations
@@ -39,6 +42,11 @@ def _rows(fmt: str, array: np.ndarray) -> bytes:
     return "".join([fmt % tuple(r) for r in array.tolist()]).encode()
 
 
+def _safe_name(name: str) -> str:
+    """A file name OBJ/MTL statements can hold: whitespace becomes ``_``."""
+    return "_".join(name.split())
+
+
 def write_obj(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None, leaves: bool = True,
               texture_size: int = 256, decimals: Optional[int] = None, progress=None,
               cancelled=None) -> List[Path]:
@@ -55,7 +63,8 @@ def write_obj(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     georef = Georef(frame, default_origin(models) if origin is None else origin)
     dec = 4 if decimals is None else int(decimals)
     vfmt = f"v %.{dec}f %.{dec}f %.{dec}f"
-    mtl_name = path.with_suffix(".mtl").name
+    mtl_path = path.with_name(_safe_name(path.with_suffix(".mtl").name))
+    mtl_name = mtl_path.name
     out = io.BytesIO()
     out.write(f"# Sylva tree models: {len(models)} trees\n"
               f"# vertices: source CRS grid axes and units, relative to the origin (add it back)\n"
@@ -93,12 +102,12 @@ def write_obj(models: Sequence[TreeModel], path, frame: ExportFrame, origin=None
     from ..textures import write_png, leaf_texture
 
     for shape in shapes:
-        png = path.parent / f"leaf_{shape}.png"
+        png = path.parent / _safe_name(f"{path.stem}_leaf_{shape}.png")
         write_png(png, leaf_texture(shape, texture_size))
         written.append(png)
         mtl.append(f"\nnewmtl leaves_{shape}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 1\nd 1\nillum 2\n"
                    f"map_Kd {png.name}\nmap_d {png.name}\n")
-    written.append(atomic_write_bytes(path.with_suffix(".mtl"), "".join(mtl).encode()))
+    written.append(atomic_write_bytes(mtl_path, "".join(mtl).encode()))
     o = georef.origin
     written.append(atomic_write_bytes(path.with_suffix(".offset.txt"), f"{o[0]!r} {o[1]!r} {o[2]!r}\n".encode()))
     written.extend(write_sidecars(path, georef, {

@@ -29,7 +29,7 @@ from typing import Any, Iterator, Optional, Tuple
 import numpy as np
 
 from ..cloud import INTERNATIONAL_FOOT, METRE, METRES, US_SURVEY_FOOT, PointCloud, Units
-from ..errors import CRSError, EmptyInputError, InputError, SylvaError
+from ..errors import CRSError, DamagedInputError, EmptyInputError, InputError, SylvaError
 from ..progress import CancelCheck, Progress, check, report
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "require_crs",
     "units_of",
     "parse_crs",
+    "tree_labels",
 ]
 
 _XYZ = ("X", "Y", "Z")
@@ -295,6 +296,8 @@ def _check_size(path: Path, header) -> None:
                 f"{path}: the file is truncated or damaged ({size} bytes; its LAZ chunk "
                 "table is missing)"
             )
+        if table != -1:
+            _check_chunk_table(path, header)
         return
     need = header.offset_to_point_data + header.point_count * header.point_format.size
     if size < need:
@@ -302,6 +305,121 @@ def _check_size(path: Path, header) -> None:
             f"{path}: the file is truncated ({size} bytes, its header announces "
             f"{header.point_count} points needing {need} bytes)"
         )
+    # more whole records than the header counts: a lying header would hide points (Sylva, not in the papers)
+    end = size
+    evlr = int(getattr(header, "start_of_first_evlr", 0) or 0)
+    if getattr(header, "number_of_evlrs", 0) and header.offset_to_point_data <= evlr <= size:
+        end = evlr
+    held = (end - header.offset_to_point_data) // header.point_format.size
+    if held > header.point_count:
+        raise DamagedInputError(
+            f"{path}: the file is damaged: its header counts {header.point_count} points but the "
+            f"file holds {held} point records"
+        )
+
+
+def _check_chunk_table(path: Path, header) -> None:
+    """The LAZ chunk table must hold the header's point count (Sylva, not in the papers).
+
+    Variable-size chunks list their point counts (their sum must be the header's count);
+    fixed-size chunks all hold ``chunk_size`` points but the last, so the count must need
+    exactly that many chunks.  A table that cannot be read means a damaged file.
+    """
+    try:
+        import lazrs
+    except ImportError:  # laspy decodes with another backend: leave it to the decoder
+        return
+    try:
+        record = header.vlrs.get("LasZipVlr")[0].record_data
+        vlr = lazrs.LazVlr(record)
+        with open(path, "rb") as fh:
+            fh.seek(header.offset_to_point_data)
+            table = lazrs.read_chunk_table(fh, vlr)
+    except (IndexError, AttributeError):
+        return
+    except Exception as err:  # noqa: BLE001 — lazrs.LazrsError, OSError
+        raise DamagedInputError(f"{path}: the file is damaged: its LAZ chunk table cannot be read ({err})") from None
+    if table is None:
+        return
+    n = int(header.point_count)
+    if vlr.uses_variable_size_chunks():
+        held = int(sum(int(c[0]) for c in table))
+        if held != n:
+            raise DamagedInputError(f"{path}: the file is damaged: its header counts {n} points but its "
+                                    f"LAZ chunks hold {held}")
+        return
+    size = int(vlr.chunk_size())
+    if size <= 0 or size >= 2**32 - 1:
+        return
+    chunks = len(table)
+    need = -(-n // size) if n else 0
+    if chunks != need:
+        raise DamagedInputError(
+            f"{path}: the file is damaged: its header counts {n} points, which need {need} LAZ chunk(s) "
+            f"of {size}, but the file has {chunks} ({(chunks - 1) * size + 1}–{chunks * size} points)")
+
+
+def _check_bounds(path, array: np.ndarray, header) -> None:
+    """Every point inside the header's bounds, give or take one scale step (Sylva, not in the papers).
+
+    A LAZ chunk with a damaged block decodes without an error into points kilometres away;
+    a header that does not match its points is a damaged file too.  Vectorised: the
+    integer records' minimum and maximum per axis.  Headers without bounds (all zero)
+    are not checked.
+    """
+    if len(array) == 0:
+        return
+    mins, maxs = np.asarray(header.mins, dtype=np.float64), np.asarray(header.maxs, dtype=np.float64)
+    if not (np.any(mins) or np.any(maxs)) or not (np.all(np.isfinite(mins)) and np.all(np.isfinite(maxs))):
+        return
+    for i, name in enumerate(_XYZ):
+        column = array[name]
+        lo = float(column.min()) * header.scales[i] + header.offsets[i]
+        hi = float(column.max()) * header.scales[i] + header.offsets[i]
+        slack = abs(header.scales[i]) * 1.01 + 1e-9 * max(abs(mins[i]), abs(maxs[i]), 1.0)
+        if lo < mins[i] - slack or hi > maxs[i] + slack:
+            raw = np.asarray(column, dtype=np.float64) * header.scales[i] + header.offsets[i]
+            outside = int(np.count_nonzero((raw < mins[i] - slack) | (raw > maxs[i] + slack)))
+            raise DamagedInputError(
+                f"{path}: the file is damaged: {outside:,} point(s) have {name.lower()} from {lo:,.3f} to "
+                f"{hi:,.3f}, outside the header's bounds {mins[i]:,.3f}–{maxs[i]:,.3f} (a corrupted block, "
+                "or a header that does not describe its points)")
+
+
+def _check_no_more_points(reader, path, header) -> None:
+    """After the header's count of points, a LAZ's last chunk must be exhausted.
+
+    lazrs refuses to decode past the last chunk of a complete file; when one more point
+    decodes, the header counts fewer points than the file holds (a header smaller than its
+    data would silently drop points).  Costs one point's decoding (Sylva, not in the papers).
+    """
+    decompressor = getattr(getattr(reader, "point_source", None), "decompressor", None)
+    if decompressor is None or not header.are_points_compressed:
+        return
+    buf = bytearray(header.point_format.size)
+    try:
+        decompressor.decompress_many(buf)
+    except Exception:  # noqa: BLE001 — the expected end of the data
+        return
+    raise DamagedInputError(f"{path}: the file is damaged: its header counts {header.point_count} points "
+                            "but its LAZ data holds more")
+
+
+def tree_labels(values, where: str = "treeID") -> np.ndarray:
+    """int64 tree IDs (0 = no tree) of a ``treeID`` dimension of any type.
+
+    lidR writes "no tree" in a floating-point treeID as NA, which in a LAS file is the
+    largest double: NaN, infinite, negative or out-of-int32 values are read as 0 (no
+    tree), without a RuntimeWarning from the cast (Sylva, not in the papers).
+    """
+    v = np.asarray(values)
+    if v.dtype.kind in "iub":
+        return v.astype(np.int64)
+    v = v.astype(np.float64, copy=False)
+    ok = np.isfinite(v) & (v > 0) & (v <= np.iinfo(np.int32).max)
+    out = np.zeros(len(v), dtype=np.int64)
+    out[ok] = np.rint(v[ok]).astype(np.int64)
+    return out
 
 
 def _open(path: Path):
@@ -390,9 +508,11 @@ def read_las(path, crs=None, *, units: Optional[Units] = None, allow_empty: bool
             las = reader.read()
         except Exception as err:
             raise _bad_file(path, err) from None
+        _check_no_more_points(reader, path, header)
     if len(las.points) != header.point_count:
         raise InputError(f"{path}: the file is truncated ({len(las.points)} of "
                          f"{header.point_count} points could be read)")
+    _check_bounds(path, las.points.array, header)
     cloud = _cloud_from_array(las.points.array, las.header, crs, units, str(path), parsed)
     report(progress, 1.0, f"read {len(cloud)} points from {path.name}")
     return cloud
@@ -443,6 +563,9 @@ def _chunks(reader, path, chunk_size, crs, units, parsed, progress, cancelled):
             if len(record) == 0:
                 break
             done += len(record)
+            _check_bounds(path, record.array, header)
+            if done >= header.point_count:
+                _check_no_more_points(reader, path, header)
             yield _cloud_from_array(record.array, header, crs, units, str(path), parsed)
             report(progress, done / total, f"read {done} of {header.point_count} points")
         if done != header.point_count:
@@ -793,7 +916,9 @@ def write_las(path, cloud: PointCloud, extra: Optional[dict] = None, *,
         if isinstance(err, (SylvaError, KeyboardInterrupt, SystemExit)):
             raise
         if isinstance(err, OSError):
-            raise InputError(f"{where}: cannot write the file ({err.strerror or err})") from None
+            from ..errors import disk_error
+
+            raise disk_error(where, err) from None
         if isinstance(err, laspy.errors.LaspyException):
             raise InputError(f"{where}: cannot write the file ({err})") from None
         raise

@@ -832,6 +832,9 @@ class DenseModel:
     branch_parent: np.ndarray
     branch_order: np.ndarray
     cylinders: dict
+    #: centre lines and radii of the wood mesh when they differ from ``curves`` (levelset.LevelSetQSM)
+    mesh_curves: Optional[List[np.ndarray]] = None
+    mesh_radii: Optional[List[np.ndarray]] = None
 
     def mesh(self, sides: int = 10, cap: bool = True) -> Tuple[np.ndarray, np.ndarray]:
         """Lofted surface of all branches (Yan §4.2, ``n2 = 10`` sides, RMF frames) as (vertices, faces)."""

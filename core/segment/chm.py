@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..progress import CancelCheck, Progress, check, report, scaled
 from . import ground_mask, resolve_tops
@@ -58,8 +59,9 @@ class ChmRegionGrowing:
     top_window_m: float = 3.0
 
     def __post_init__(self):
-        if not self.resolution_m > 0 or not self.max_crown_diameter_m > 0:
-            raise ValueError("ChmRegionGrowing: resolution_m and max_crown_diameter_m must be > 0")
+        if not 0 < self.resolution_m < float("inf") or not 0 < self.max_crown_diameter_m < float("inf"):
+            raise ParameterError("ChmRegionGrowing: resolution_m and max_crown_diameter_m must be "
+                                 "positive finite numbers")
 
     def segment(self, cloud: PointCloud, tops=None, progress: Progress = None,
                 cancelled: CancelCheck = None) -> np.ndarray:

@@ -93,6 +93,7 @@ import scipy.linalg
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report, scaled
@@ -177,16 +178,19 @@ class NormalizedCut:
             object.__setattr__(self, "top_window_m", 2.0)
         for name in ("voxel_m", "radius_m", "height_m", "sigma_h_m", "sigma_v_m", "sigma_intensity",
                      "sigma_colour", "merge_ncut", "always_merge_ncut"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"NormalizedCut.{name} must be positive")
-        if self.min_height_m < 0:
-            raise ValueError("NormalizedCut: min_height_m must be >= 0")
-        if self.merge_dip < 0:
-            raise ValueError("NormalizedCut: merge_dip must be >= 0")
-        if self.top_window_points < 0 or self.apex_window_m < 0:
-            raise ValueError("NormalizedCut: top_window_points and apex_window_m must be >= 0")
-        if self.apex_window_m > 0 and not (self.apex_slope > 0 and 1 <= self.apex_sectors <= 8):
-            raise ValueError("NormalizedCut: apex_slope must be > 0 and apex_sectors in 1..8")
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ParameterError(f"NormalizedCut.{name} must be a positive finite number, "
+                                     f"not {getattr(self, name)}")
+        if not 0 <= self.min_height_m < float("inf"):
+            raise ParameterError(f"NormalizedCut: min_height_m must be >= 0 and finite, not {self.min_height_m}")
+        if not 0 <= self.merge_dip < float("inf"):
+            raise ParameterError("NormalizedCut: merge_dip must be >= 0")
+        if not (0 <= self.top_window_points and 0 <= self.apex_window_m < float("inf")
+                and 0 < self.top_window_m < float("inf")):
+            raise ParameterError("NormalizedCut: top_window_points and apex_window_m must be >= 0, "
+                                 "top_window_m positive and finite")
+        if self.apex_window_m > 0 and not (0 < self.apex_slope < float("inf") and 1 <= self.apex_sectors <= 8):
+            raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
 
     def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
                 crown: np.ndarray):

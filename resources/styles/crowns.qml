@@ -233,6 +233,6 @@
   </renderer-v2>
   <blendMode>0</blendMode>
   <featureBlendMode>0</featureBlendMode>
-  <layerOpacity>1</layerOpacity>
+  <layerOpacity>0.55</layerOpacity>
   <layerGeometryType>2</layerGeometryType>
 </qgis>

@@ -1,0 +1,187 @@
+"""GeoPackage write and merge time, this checkout against an older revision, side by side in one run.
+
+    python benchmarks/gpkg.py [--forest out/forest.gpkg] [--ref main~1] [--parts 100] [--repeat 3]
+
+The layers are those of the bundled sample's ``forest.gpkg`` (``--forest``; made
+with ``sylva pipeline`` on resources/sample/sample.laz when left out): trees,
+tree_tops, crowns (shapely polygons), crown_points (WKB from arrays),
+stem_points, skeletons (ZM WKB) and models_3d (WKB), as the pipeline hands them
+to the writer.  For each code (``--ref``, exported with ``git archive`` into a
+temporary folder, and this checkout) it times, in separate processes run in
+turn (best of ``--repeat``, CPU seconds of the process, then wall seconds):
+
+* ``tile``:    writing the tile's part (``write_gpkg`` of the seven layers);
+* ``forest``:  the sample's forest.gpkg = the part written + merged alone (``merge_gpkg``);
+* ``merge N``: merging ``--parts`` copies of the part (a multi-tile run: 100 parts of the
+  sample's size are about the pipeline's 1 km^2), per part and in total;
+
+and counts GDAL's ``validate_gpkg.py`` failures (of the merged file only up to 10 parts: the validator
+reads every geometry in Python) and R-trees in the merged file.
+The machine may be shared: compare the two columns of one run, not runs.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VALIDATOR = Path("/usr/lib/python3/dist-packages/osgeo_utils/samples/validate_gpkg.py")
+LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d")
+
+
+def load_tables(forest: Path):
+    """The sample's layers as the pipeline builds them (rows read with sqlite3, no Sylva reader)."""
+    import numpy as np
+    import pyproj
+    import shapely
+
+    from sylva.core.table import VectorTable, point_layer
+
+    con = sqlite3.connect(forest)
+    (srs,) = con.execute("SELECT srs_id FROM gpkg_geometry_columns WHERE table_name = 'crowns'").fetchone()
+    crs = pyproj.CRS.from_epsg(srs)
+    tables = []
+    for name in LAYERS:
+        cols = [r[1] for r in con.execute(f'PRAGMA table_info("{name}")') if r[1] not in ("fid",)]
+        rows = con.execute(f'SELECT {",".join(chr(34) + c + chr(34) for c in cols)} FROM "{name}" ORDER BY fid').fetchall()
+        data = {c: [r[i] for r in rows] for i, c in enumerate(cols)}
+        geom = data.pop("geom", None)
+        columns = {}
+        for c, v in data.items():
+            if all(isinstance(x, int) for x in v):
+                columns[c] = np.array(v, dtype=np.int64)
+            elif all(isinstance(x, (int, float)) or x is None for x in v):
+                columns[c] = np.array([np.nan if x is None else x for x in v], dtype=float)
+            else:
+                columns[c] = np.array(v, dtype=object)
+        wkb = None if geom is None else [None if b is None else bytes(b[8:]) for b in geom]
+        if name == "trees":
+            tables.append(VectorTable(name, "none", None, columns, crs))
+        elif name in ("tree_tops", "crown_points", "stem_points"):
+            xyz = shapely.get_coordinates(shapely.from_wkb(np.array(wkb, dtype=object)), include_z=True)
+            tables.append(point_layer(name, xyz, columns, crs))
+        elif name == "crowns":
+            tables.append(VectorTable(name, "polygon", shapely.from_wkb(np.array(wkb, dtype=object)), columns, crs,
+                                      has_z=False))
+        elif name == "skeletons":
+            tables.append(VectorTable(name, "line", np.array(wkb, dtype=object), columns, crs, has_m=True))
+        else:
+            tables.append(VectorTable(name, "polygon", np.array(wkb, dtype=object), columns, crs, wkb=True))
+    con.close()
+    return tables
+
+
+def measure(forest: str, folder: str, parts: int, repeat: int) -> dict:
+    """Run in a subprocess whose sys.path holds the code to measure."""
+    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg import write_gpkg
+
+    tables = load_tables(Path(forest))
+    out = Path(folder)
+    best = {}
+
+    def timed(key, fn):
+        for _ in range(repeat):
+            c, w = time.process_time(), time.perf_counter()
+            fn()
+            cpu, wall = time.process_time() - c, time.perf_counter() - w
+            if key not in best or cpu < best[key][0]:
+                best[key] = (cpu, wall)
+
+    part = out / "part.gpkg"
+    timed("tile", lambda: write_gpkg(part, tables))
+    timed("forest", lambda: (write_gpkg(part, tables), merge_gpkg([part], out / "forest.gpkg")))
+    many = [part] * parts
+    timed("merge", lambda: merge_gpkg(many, out / "merged.gpkg"))
+    merged = out / "merged.gpkg"
+    con = sqlite3.connect(merged)
+    rtrees = con.execute("SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name LIKE 'rtree%' "
+                         "AND sql LIKE 'CREATE VIRTUAL TABLE%'").fetchone()[0]
+    rows = con.execute('SELECT count(*) FROM "crown_points"').fetchone()[0]
+    con.close()
+    failures = {"merge": "not run (> 10 parts: slow)"}
+    for name, path in (("forest", out / "forest.gpkg"), ("merge", merged)):
+        if name == "merge" and parts > 10:
+            continue
+        run = subprocess.run(["/usr/bin/python3", str(VALIDATOR), "-k", str(path)], capture_output=True, text=True)
+        failures[name] = len([line for line in run.stdout.splitlines() if line.startswith("Req")])
+    import sylva
+
+    return {"code": str(Path(sylva.__file__).parent), "times": best, "rtrees": rtrees, "crown_point_rows": rows, "failures": failures,
+            "bytes": merged.stat().st_size}
+
+
+def _sample_forest(folder: Path) -> Path:
+    out = folder / "run"
+    subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "pipeline",
+                    f"--INPUT={ROOT / 'resources' / 'sample' / 'sample.laz'}", f"--OUTPUT_FOLDER={out}"],
+                   check=True)
+    return out / "forest.gpkg"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--forest", type=Path, help="a forest.gpkg of the sample (made when left out)")
+    ap.add_argument("--ref", default="71f2d13", help="git revision of the old writer (default: before GDAL)")
+    ap.add_argument("--parts", type=int, default=100)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--_measure", nargs=2, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args._measure:
+        print(json.dumps(measure(args._measure[0], args._measure[1], args.parts, args.repeat)))
+        return
+    with tempfile.TemporaryDirectory(prefix="sylva-gpkg-bench-") as tmp:
+        tmp = Path(tmp)
+        forest = args.forest or _sample_forest(tmp)
+        old = tmp / "code-old" / "sylva"
+        old.mkdir(parents=True)
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.ref], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(old)], input=archive, check=True)
+        results = {}
+        for label, code in ((f"old ({args.ref})", old.parent), ("new (this checkout)", None)):
+            work = tmp / ("work-" + label.split()[0])
+            work.mkdir()
+            env = dict(os.environ)
+            env.pop("PYTHONPATH", None)
+            if code is not None:                 # ahead of the installed (editable) sylva, which is this checkout
+                env["PYTHONPATH"] = str(code)
+            run = subprocess.run([sys.executable, "-c", "import runpy, sys; sys.argv = sys.argv[1:]; "
+                                  "runpy.run_path(sys.argv[0], run_name='__main__')", str(Path(__file__).resolve()),
+                                  "--parts", str(args.parts), "--repeat", str(args.repeat),
+                                  "--_measure", str(forest), str(work)],
+                                 env=env, capture_output=True, text=True, cwd=str(tmp))
+            if run.returncode:
+                sys.exit(f"{label}: {run.stderr.strip().splitlines()[-1]}")
+            results[label] = json.loads(run.stdout.strip().splitlines()[-1])
+            for p in work.glob("*.gpkg"):
+                p.unlink()
+    labels = list(results)
+    for label, r in results.items():
+        print(f"{label}: code in {'the exported revision' if 'sylva-gpkg-bench' in r['code'] else r['code']}")
+    print(f"GeoPackage writing, sample forest.gpkg ({forest.name}); merge of {args.parts} copies of the tile part; "
+          f"best of {args.repeat}, CPU s (wall s); shared machine: compare columns, not runs")
+    print(f"{'':28}{labels[0]:>26}{labels[1]:>26}")
+    for key, text in (("tile", "tile part written"), ("forest", "forest.gpkg (part + merge)"),
+                      ("merge", f"merge of {args.parts} parts")):
+        cells = [f"{r['times'][key][0]:.3f} ({r['times'][key][1]:.3f})" for r in results.values()]
+        print(f"{text:28}{cells[0]:>26}{cells[1]:>26}")
+    cells = [f"{r['times']['merge'][0] / args.parts * 1000:.1f} ms" for r in results.values()]
+    print(f"{'merge per part':28}{cells[0]:>26}{cells[1]:>26}")
+    for key, text in (("forest", "validate_gpkg failures"), ("merge", "  (merged file)")):
+        cells = [str(r["failures"][key]) for r in results.values()]
+        print(f"{text:28}{cells[0]:>26}{cells[1]:>26}")
+    cells = [str(r["rtrees"]) for r in results.values()]
+    print(f"{'R-trees in merged file':28}{cells[0]:>26}{cells[1]:>26}")
+    cells = [f"{r['bytes'] / 1e6:.0f} MB, {r['crown_point_rows'] / 1e6:.1f} M points" for r in results.values()]
+    print(f"{'merged file':28}{cells[0]:>26}{cells[1]:>26}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,672 @@
+"""Dense wood models fitted to terrestrial scans: geodesic level sets, circle fits, tubes (Sylva's default).
+
+    model = LevelSetQSM().model(TreePoints(tree_id, xyz, ground_z))
+
+The skeleton follows the level-set idea that Yan et al. (2009) compare their
+clustering with (§1.3 and §5, [XGC07]: Xu, Gossett & Chen 2007, points
+binned by their shortest-path distance to the root), which is also how
+TreeQSM covers a tree (Raumonen et al. 2013) and how 3DFin/dendromatics
+follow stems (Cabo et al. 2018): a kNN graph of the points (k neighbours, as
+Yan §2.1), shortest-path (geodesic) distances from the lowest points, the
+points binned by that distance, and the connected pieces of every bin
+become the skeleton's nodes; each node's parent is the node of the
+predecessor of its nearest point on the shortest-path tree, so the skeleton
+is a tree by construction.  Geometry is then fitted to the points, as
+TreeQSM's cylinders are (Sylva, not in Yan et al.: their radii come from
+bounding cylinders, §2.3):
+
+* pieces of the same bin with the same parent whose centres are closer than
+  their spreads are one cross-section seen in parts (a stem seen from a few
+  scanner positions) and are merged;
+* each node's axis runs from its parent's centre to its children's; its
+  points, projected on the plane normal to the axis, get a least-squares
+  circle (Kasa's algebraic fit refined by Gauss-Newton steps, all nodes at
+  once) when they cover at least ``min_arc_deg`` of the circumference; the
+  others, thin branches whose points scatter about a centre line, get the
+  median distance of their points to the axis through their centroid;
+* radii are smoothed along each branch (running median of three) and a
+  branch starts no thicker than its parent;
+* the branches (a node continues into the child carrying the most points)
+  become tubes swept along their centre lines with rotation-minimising
+  frames (:func:`sylva.core.geometry.sweep_tube`, Yan et al. §4.2), from
+  the parent's centre to the farthest point of the tip, and the TreeQSM-like
+  cylinder table of those centre lines (:mod:`sylva.core.qsm`).
+
+Everything is vectorised (scipy's kd-tree, Dijkstra and connected
+components; bincount sums): ~0.1–0.3 s for 10,000–20,000 points.
+``benchmarks/dense.py`` measures the written GLB against the scans.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from ..progress import CancelCheck, Progress, check, report
+from .model import Reconstruction, Skeleton, TreePoints, screen
+
+__all__ = ["LevelSetQSM", "level_set_nodes"]
+
+
+@dataclass(frozen=True)
+class LevelSetQSM:
+    """Geodesic level-set skeleton with radii fitted to the points (see the module docstring).
+
+    ``k`` neighbours of the graph; ``bin_m`` width of the geodesic bins (0: ``bin_spacing`` times the
+    median distance to the 8th neighbour, between ``min_bin_m`` and ``max_bin_m``; narrow bins follow
+    the points closely, measured on the TLS trees by ``benchmarks/dense.py``); ``root_m`` points
+    this close above the lowest point are the sources; ``merge_spacing`` (0: off) points of one bin
+    closer than this many point spacings (or a bin) belong to one piece (fewer, rounder sections on thick
+    stems, but farther from the points on the TLS trees); ``min_arc_deg`` smallest arc of a
+    cross-section that gets a circle fit; ``min_component`` pieces of the graph with fewer
+    points are left out (isolated noise); ``sides`` of the tubes (thick ones: ``sides``, twigs
+    under 3 cm radius: ``twig_sides``); ``max_points`` larger trees are thinned to a voxel grid
+    first.
+    """
+
+    k: int = 10
+    bin_m: float = 0.0
+    bin_spacing: float = 2.0
+    min_bin_m: float = 0.02
+    adaptive: float = 0.6
+    fine_spacing: float = 0.25
+    thick_m: float = 0.04
+    max_bin_m: float = 0.5
+    root_m: float = 0.1
+    merge_spacing: float = 0.0
+    min_arc_deg: float = 150.0
+    min_component: int = 5
+    sides: int = 10
+    twig_sides: int = 6
+    max_points: int = 400_000
+    min_points: int = 50
+
+    name = "level_set_qsm"
+    #: model_trees takes this method's own tubes as the wood mesh
+    fitted_wood = True
+
+    def __post_init__(self):
+        if self.k < 2 or self.sides < 3 or self.twig_sides < 3 or self.bin_m < 0 or not self.min_bin_m > 0:
+            raise InputError("LevelSetQSM: k >= 2, sides >= 3, twig_sides >= 3, bin_m >= 0, min_bin_m > 0")
+
+    def model(self, tree: TreePoints, progress: Progress = None, cancelled: CancelCheck = None):
+        from ..qsm import cylinders_from_curves
+        from .kmeans import DenseModel
+
+        t0 = time.perf_counter()
+        ground_z, flags, rec = screen(tree, self.min_points, self.name, progress)
+        if rec is not None:
+            skel = rec.skeleton
+            curves = [skel.nodes] if len(skel) > 1 else []
+            radii = [np.full(len(skel), 0.01)] if len(skel) > 1 else []
+            bp = np.array([-1][:len(curves)])
+            return DenseModel(rec, None, None, curves, radii, bp, np.zeros(len(curves), np.int64),
+                              cylinders_from_curves(curves, radii, bp))
+        xyz = np.asarray(tree.xyz, dtype=np.float64)
+        if len(xyz) > self.max_points:
+            xyz = _voxel_thin(xyz, self.max_points)
+            flags.append("thinned")
+        check(cancelled)
+        nodes = level_set_nodes(xyz, self)
+        mesh_curves = mesh_radii = None
+        if self.adaptive > 0 and self.bin_m <= 0:
+            # two scales: the coarse level's radii set the bin width of every point (the structure and
+            # the QSM: wide bins on thick stems keep each cross-section whole), and a fine level with
+            # narrow bins everywhere follows the twigs (the mesh, where the structure's stems are thin)
+            coarse = nodes
+            r = coarse["radius"][np.maximum(coarse["label"], 0)]
+            r = np.where(coarse["label"] >= 0, r, np.median(coarse["radius"]))
+            fine = float(np.clip(self.fine_spacing * coarse["spacing"], self.min_bin_m, self.max_bin_m))
+            width = np.clip(self.adaptive * r, fine, max(coarse["bin_m"], fine))
+            nodes = level_set_nodes(xyz, self, width=width, prep=coarse["prep"])
+            nodes["bin_m"] = fine
+            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"])
+            fc, fr, _, _, _, _ = _branches(fn, ground_z)
+            mesh_curves, mesh_radii = simplify_lines(fc, fr)
+        report(progress, 0.6, "level sets")
+        check(cancelled)
+        curves, radii, bparent, border, skel, _ = _branches(nodes, ground_z)
+        curves, radii, bparent, border = prune_stubs(curves, radii, bparent, border, 3 * nodes["bin_m"])
+        curves, radii = simplify_lines(curves, radii)
+        cyl = line_cylinders(curves, radii, bparent, border)
+        stats = {"n_points": int(len(tree.xyz)), "n_nodes": int(len(skel)), "n_branches": len(curves),
+                 "bin_m": nodes["bin_m"], "spacing_k_m": nodes["spacing"],
+                 "n_circle_fits": int(nodes["fitted"].sum()), "t_total_s": time.perf_counter() - t0}
+        if nodes["spacing"] > 0.1:
+            flags.append("sparse_scan")
+        visited = float(nodes["n_used"]) / max(len(xyz), 1)
+        rec = Reconstruction(skel, self.name, visited, nodes["n_bridges"] == 0, stats, flags, tree.tree_id)
+        report(progress, 1.0, "model")
+        dm = DenseModel(rec, None, None, curves, radii, bparent, border, cyl)
+        if mesh_curves is not None:
+            dm.mesh_curves, dm.mesh_radii = mesh_curves, mesh_radii
+        return dm
+
+    def reconstruct(self, tree: TreePoints, progress: Progress = None, cancelled: CancelCheck = None):
+        return self.model(tree, progress, cancelled).reconstruction
+
+
+def _voxel_thin(xyz: np.ndarray, target: int) -> np.ndarray:
+    """One point (the first in file order) per cubic voxel, the voxel grown until at most ``target`` remain."""
+    span = float(np.ptp(xyz, axis=0).max()) or 1.0
+    size = 0.005
+    while True:
+        key = np.floor((xyz - xyz.min(axis=0)) / size).astype(np.int64)
+        _, first = np.unique(key, axis=0, return_index=True)
+        if len(first) <= target or size > span:
+            return xyz[np.sort(first)]
+        size *= 1.5
+
+
+def _graph(xyz: np.ndarray, k: int):
+    """Symmetric kNN graph (edge weights in metres), the median distance to the 8th neighbour, kNN arrays."""
+    n = len(xyz)
+    kk = min(k, n - 1)
+    d, nb = cKDTree(xyz).query(xyz, k=kk + 1, workers=-1)
+    spacing = float(np.median(d[:, min(8, kk)]))
+    rows = np.repeat(np.arange(n), kk)
+    g = sparse.csr_matrix((np.maximum(d[:, 1:].ravel(), 1e-9), (rows, nb[:, 1:].ravel())), shape=(n, n))
+    return g.maximum(g.T).tocsr(), spacing
+
+
+def _bridge(xyz: np.ndarray, g: sparse.csr_matrix, root: int, min_component: int):
+    """Join the graph's pieces of at least ``min_component`` points to the piece holding ``root`` by their
+    shortest link, nearest pieces first (Sylva: gaps left by occlusion); returns (graph, used mask, bridges)."""
+    _, lab = csgraph.connected_components(g, directed=False)
+    sizes = np.bincount(lab)
+    used = sizes[lab] >= min_component
+    used |= lab == lab[root]
+    main = lab == lab[root]
+    others = [c for c in np.unique(lab[used & ~main])]
+    rows, cols, ws = [], [], []
+    n_bridges = 0
+    while others:
+        tree = cKDTree(xyz[main])
+        midx = np.flatnonzero(main)
+        best = []
+        for c in others:
+            pts = np.flatnonzero(lab == c)
+            d, j = tree.query(xyz[pts], workers=-1)
+            i = int(np.argmin(d))
+            best.append((float(d[i]), c, int(pts[i]), int(midx[j[i]])))
+        best.sort()
+        # attach every piece whose link is within twice the shortest one, then look again
+        limit = 2 * best[0][0] + 1e-9
+        for dist, c, a, b in best:
+            if dist <= limit:
+                rows += [a, b]
+                cols += [b, a]
+                ws += [max(dist, 1e-9)] * 2
+                main |= lab == c
+                n_bridges += 1
+        others = [c for c in others if not main[np.flatnonzero(lab == c)[0]]]
+    if rows:
+        g = (g + sparse.csr_matrix((ws, (rows, cols)), shape=g.shape)).tocsr()
+    return g, used, n_bridges
+
+
+def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=None, prep=None) -> dict:
+    """The level-set nodes of a tree's points: centres, radii, parents (see the module docstring).
+
+    ``width`` (n,) optional bin width per point (m): the geodesic distance is then measured in local
+    bin widths (every edge's length divided by the mean width of its ends) and binned by 1, so bins are
+    wide on thick stems and narrow on twigs.  ``prep`` the ``prep`` of an earlier call on the same points
+    (graph, spacing, used mask, bridges).  Returns a dict: ``centre`` (m, 3), ``radius`` (m,), ``parent``
+    (m,) (-1 for the root, parents first), ``count`` points per node, ``tip`` (m, 3) the farthest point of
+    each node along its axis, ``fitted`` (m,) True where a circle was fitted, ``label`` per point its node
+    (-1 unused), and ``bin_m``, ``spacing``, ``n_used``, ``n_bridges``, ``prep``.
+    """
+    n = len(xyz)
+    root = int(np.argmin(xyz[:, 2]))
+    if prep is None:
+        g, spacing = _graph(xyz, opt.k)
+        g, used, n_bridges = _bridge(xyz, g, root, opt.min_component)
+        prep = (g, spacing, used, n_bridges)
+    g, spacing, used, n_bridges = prep
+    if width is None:
+        bin_m = opt.bin_m if opt.bin_m > 0 else float(np.clip(opt.bin_spacing * spacing, opt.min_bin_m,
+                                                              opt.max_bin_m))
+        gw, unit, src_m = g, bin_m, bin_m
+    else:
+        width = np.asarray(width, dtype=np.float64)
+        coo = g.tocoo()
+        gw = sparse.csr_matrix((coo.data / (0.5 * (width[coo.row] + width[coo.col])), (coo.row, coo.col)),
+                               shape=g.shape)
+        bin_m, unit, src_m = float(np.median(width)), 1.0, float(np.median(width))
+    z0 = xyz[root, 2]
+    src = np.flatnonzero(used & (xyz[:, 2] <= z0 + max(opt.root_m, src_m / 2)))
+    dist, pred, _ = csgraph.dijkstra(gw, directed=False, indices=src, min_only=True, return_predecessors=True)
+    dist = dist / unit
+    bin_m_real = bin_m
+    bin_m = 1.0
+    reach = np.isfinite(dist) & used
+    b = np.where(reach, np.floor(dist), -1).astype(np.int64)
+    # pieces of each bin: components of the graph restricted to edges inside one bin
+    # (the graph's edges, and links to the 16 nearest points within ``merge_spacing`` point spacings or a
+    # bin: a thick stem cut into bins narrower than its point spacing stays one ring per bin)
+    coo = g.tocoo()
+    kk = min(16, n - 1)
+    dq, nq = cKDTree(xyz).query(xyz, k=kk + 1, distance_upper_bound=max(opt.merge_spacing * spacing, bin_m_real),
+                                workers=-1)
+    qi = np.repeat(np.arange(n), kk)
+    qj = nq[:, 1:].ravel()
+    live = (qj < n) & (opt.merge_spacing > 0)
+    rows = np.r_[coo.row, qi[live]]
+    cols = np.r_[coo.col, qj[live]]
+    same = (b[rows] == b[cols]) & (b[rows] >= 0)
+    sub = sparse.csr_matrix((np.ones(same.sum()), (rows[same], cols[same])), shape=(n, n))
+    _, comp = csgraph.connected_components(sub, directed=False)
+    comp = np.where(reach, comp, -1)
+    comp = _merge_split_sections(xyz, comp, b, dist, pred)
+    # relabel nodes by their smallest geodesic distance: parents (smaller distance) come first
+    ok = comp >= 0
+    ids, comp_r = np.unique(comp[ok], return_inverse=True)
+    m = len(ids)
+    lab = np.full(n, -1, dtype=np.int64)
+    lab[ok] = comp_r
+    first = _group_argmin(dist, lab, m)
+    order = np.argsort(dist[first], kind="stable")
+    rank = np.empty(m, dtype=np.int64)
+    rank[order] = np.arange(m)
+    lab[ok] = rank[lab[ok]]
+    first = first[order]
+    p = pred[first]
+    parent = np.where(p >= 0, lab[np.maximum(p, 0)], -1)
+    parent[parent >= np.arange(m)] = -1
+    roots = np.flatnonzero(parent < 0)
+    parent[roots[1:]] = roots[0]          # several pieces among the sources: all hang from the first
+    cnt = np.bincount(lab[ok], minlength=m).astype(np.float64)
+    centroid = np.stack([np.bincount(lab[ok], weights=xyz[ok, c], minlength=m) for c in range(3)], 1) / cnt[:, None]
+    axis = _axes(centroid, parent)
+    centre, radius, fitted = _fit_sections(xyz[ok], lab[ok], centroid, axis, m, opt.min_arc_deg)
+    # the tip of a node: its farthest point along the axis (where the tube ends on a leaf node)
+    proj = ((xyz[ok] - centre[lab[ok]]) * axis[lab[ok]]).sum(1)
+    far = np.full(m, -np.inf)
+    np.maximum.at(far, lab[ok], proj)
+    tip = centre + axis * np.maximum(far, 0)[:, None]
+    return dict(centre=centre, radius=radius, parent=parent, count=cnt, tip=tip, fitted=fitted, axis=axis,
+                label=lab, z_min=float(z0), bin_m=bin_m_real, spacing=spacing, n_used=int(ok.sum()),
+                n_bridges=n_bridges, prep=prep)
+
+
+def _group_argmin(values, labels, n):
+    order = np.lexsort((values, labels))
+    lab = labels[order]
+    keep = lab >= 0
+    order, lab = order[keep], lab[keep]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    out = np.zeros(n, dtype=np.int64)
+    out[lab[starts]] = order[starts]
+    return out
+
+
+def _merge_split_sections(xyz, comp, b, dist, pred):
+    """Merge pieces of one bin whose centres are closer than the sum of their spreads (one cross-section
+    seen in parts; Sylva, not in the papers)."""
+    ok = comp >= 0
+    if not ok.any():
+        return comp
+    ids, c = np.unique(comp[ok], return_inverse=True)
+    m = len(ids)
+    lab = np.full(len(comp), -1, dtype=np.int64)
+    lab[ok] = c
+    first = _group_argmin(dist, lab, m)
+    p = pred[first]
+    parent = np.where(p >= 0, lab[np.maximum(p, 0)], -1)
+    cnt = np.bincount(c, minlength=m).astype(np.float64)
+    cen = np.stack([np.bincount(c, weights=xyz[ok, k], minlength=m) for k in range(3)], 1) / cnt[:, None]
+    spread = np.zeros(m)
+    np.maximum.at(spread, c, np.linalg.norm(xyz[ok] - cen[c], axis=1))
+    nb = b[first]
+    key = np.argsort(nb, kind="stable")
+    # candidate pairs: all pairs of pieces of one bin (whatever their parents: a thick stem cut by bins
+    # narrower than its point spacing falls apart into arcs that each follow their own arc below)
+    grp = np.r_[True, nb[key][1:] != nb[key][:-1]]
+    starts = np.flatnonzero(grp)
+    ends = np.r_[starts[1:], m]
+    uf = np.arange(m)
+
+    def find(x):
+        while uf[x] != x:
+            uf[x] = uf[uf[x]]
+            x = uf[x]
+        return x
+
+    for s, e in zip(starts[ends - starts > 1], ends[ends - starts > 1]):
+        mem = key[s:e]
+        d = np.linalg.norm(cen[mem][:, None] - cen[mem][None], axis=2)
+        close = d < (spread[mem][:, None] + spread[mem][None])
+        ii, jj = np.nonzero(np.triu(close, 1))
+        for i, j in zip(ii, jj):
+            ri, rj = find(mem[i]), find(mem[j])
+            if ri != rj:
+                uf[max(ri, rj)] = min(ri, rj)
+    roots = np.array([find(i) for i in range(m)])
+    out = comp.copy()
+    out[ok] = roots[c]
+    return out
+
+
+def _axes(centroid, parent):
+    """Unit axis per node: from its parent's centre to the mean centre of its children (or to itself)."""
+    m = len(centroid)
+    child_sum = np.zeros((m, 3))
+    n_child = np.zeros(m)
+    has = parent >= 0
+    np.add.at(child_sum, parent[has], centroid[has])
+    np.add.at(n_child, parent[has], 1)
+    below = np.where(has[:, None], centroid[np.maximum(parent, 0)], centroid)
+    above = np.where(n_child[:, None] > 0, child_sum / np.maximum(n_child, 1)[:, None], centroid)
+    v = above - below
+    ln = np.linalg.norm(v, axis=1)
+    v = np.where(ln[:, None] > 1e-9, v / np.maximum(ln, 1e-12)[:, None], np.array([0, 0, 1.0]))
+    return v
+
+
+def _fit_sections(pts, lab, centroid, axis, m, min_arc_deg, iterations=6):
+    """(centre, radius, fitted) of every node: circle fit in the plane normal to its axis, else the median
+    distance of its points to the axis through the centroid."""
+    helper = np.where(np.abs(axis[:, 2:3]) < 0.9, np.array([0, 0, 1.0]), np.array([1.0, 0, 0]))
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(axis, e1)
+    q = pts - centroid[lab]
+    x, y = (q * e1[lab]).sum(1), (q * e2[lab]).sum(1)
+    rho = np.hypot(x, y)
+    cnt = np.bincount(lab, minlength=m).astype(np.float64)
+    med = _group_median(rho, lab, m)
+    # arc coverage around the centroid, 30° sectors
+    sector = (np.floor((np.arctan2(y, x) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
+    occ = np.bincount(lab * 12 + sector, minlength=12 * m).reshape(m, 12) > 0
+    z = x * x + y * y
+    cols = (x, y, np.ones_like(x))
+    ata = np.empty((m, 3, 3))
+    atb = np.empty((m, 3))
+    for i in range(3):
+        atb[:, i] = np.bincount(lab, weights=cols[i] * z, minlength=m)
+        for j in range(i, 3):
+            ata[:, i, j] = ata[:, j, i] = np.bincount(lab, weights=cols[i] * cols[j], minlength=m)
+    good = (cnt >= 8) & (occ.sum(1) * 30 >= 90)
+    good &= np.abs(np.linalg.det(ata)) > 1e-24
+    sol = np.zeros((m, 3))
+    if good.any():
+        sol[good] = np.linalg.solve(ata[good], atb[good][..., None])[..., 0]
+    cx, cy = sol[:, 0] / 2, sol[:, 1] / 2
+    r = np.sqrt(np.maximum(sol[:, 2] + cx ** 2 + cy ** 2, 0.0))
+    for _ in range(iterations):
+        dx, dy = x - cx[lab], y - cy[lab]
+        dd = np.maximum(np.hypot(dx, dy), 1e-12)
+        jr = (-dx / dd, -dy / dd, -np.ones_like(dd))
+        res = dd - r[lab]
+        jtj = np.empty((m, 3, 3))
+        jtr = np.empty((m, 3))
+        for i in range(3):
+            jtr[:, i] = np.bincount(lab, weights=jr[i] * res, minlength=m)
+            for j in range(i, 3):
+                jtj[:, i, j] = jtj[:, j, i] = np.bincount(lab, weights=jr[i] * jr[j], minlength=m)
+        g2 = good & (np.abs(np.linalg.det(jtj)) > 1e-24)
+        step = np.zeros((m, 3))
+        if g2.any():
+            step[g2] = -np.linalg.solve(jtj[g2], jtr[g2][..., None])[..., 0]
+        cx, cy, r = cx + step[:, 0], cy + step[:, 1], r + step[:, 2]
+    # the arc the points cover seen from the fitted centre, and the fit's residual
+    dx, dy = x - cx[lab], y - cy[lab]
+    res = np.abs(np.hypot(dx, dy) - r[lab])
+    rms = np.sqrt(np.bincount(lab, weights=res ** 2, minlength=m) / np.maximum(cnt, 1))
+    sec2 = (np.floor((np.arctan2(dy, dx) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
+    arc = (np.bincount(lab * 12 + sec2, minlength=12 * m).reshape(m, 12) > 0).sum(1) * 30.0
+    spread = np.zeros(m)
+    np.maximum.at(spread, lab, rho)
+    good &= np.isfinite(r) & (r > 0) & (arc >= min_arc_deg) & (rms <= 0.25 * r + 0.005)
+    good &= (np.hypot(cx, cy) <= 2.0 * np.maximum(spread, 1e-3)) & (r <= 2.0 * np.maximum(spread, 1e-3))
+    centre = centroid + np.where(good[:, None], cx[:, None] * e1 + cy[:, None] * e2, 0.0)
+    radius = np.where(good, r, np.where(np.isfinite(med), med, 0.0))
+    radius = np.maximum(radius, 0.002)
+    return centre, radius, good
+
+
+def _group_median(values, groups, n):
+    out = np.full(n, np.nan)
+    if len(values) == 0:
+        return out
+    order = np.lexsort((values, groups))
+    g, v = groups[order], values[order]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    c = np.diff(np.r_[starts, len(g)])
+    out[g[starts]] = (v[starts + (c - 1) // 2] + v[starts + c // 2]) / 2
+    return out
+
+
+def _branches(nodes: dict, ground_z: float):
+    """Branch centre lines and radii from the level-set nodes; the skeleton (base node first).
+
+    A node continues into the child carrying the most points downstream; every other child starts a
+    branch whose centre line begins at the parent's centre.  Radii: running median of three along a
+    branch, a branch's first radius at most its parent's.  The trunk starts at the lowest stem points
+    (the base, at the lowest point's height under the root's centre).  Leaf nodes end at their tip.
+    """
+    centre, radius, parent, cnt, tip = nodes["centre"], nodes["radius"].copy(), nodes["parent"], nodes["count"], nodes["tip"]
+    m = len(centre)
+    load = cnt.copy()
+    for i in range(m - 1, 0, -1):          # parents come first: accumulate downstream points
+        if parent[i] >= 0:
+            load[parent[i]] += load[i]
+    best = np.full(m, -1, dtype=np.int64)
+    best_load = np.full(m, -1.0)
+    for i in range(m):
+        p = parent[i]
+        if p >= 0 and load[i] > best_load[p]:
+            best[p], best_load[p] = i, load[i]
+    chains, chain_parent, chain_of = [], [], np.full(m, -1, dtype=np.int64)
+    starts = [0] + [i for i in range(1, m) if parent[i] < 0 or best[parent[i]] != i]
+    for s in starts:
+        ch = [s]
+        while best[ch[-1]] >= 0:
+            ch.append(int(best[ch[-1]]))
+        cid = len(chains)
+        for v in ch:
+            chain_of[v] = cid
+        chains.append(ch)
+        chain_parent.append(-1 if parent[s] < 0 else int(chain_of[parent[s]]))
+    # smooth radii along chains and keep each branch's base no thicker than its parent
+    for ch in chains:
+        r = radius[ch]
+        if len(r) >= 3:
+            rp = np.r_[r[0], r, r[-1]]
+            radius[ch] = np.median(np.stack([rp[:-2], rp[1:-1], rp[2:]]), axis=0)
+    for ch in chains:
+        p = parent[ch[0]]
+        if p >= 0 and radius[ch[0]] > radius[p]:
+            radius[ch] = np.minimum(radius[ch], radius[p])
+    base = np.array([centre[0, 0], centre[0, 1], min(nodes["z_min"], float(centre[0, 2]))])
+    curves, radii = [], []
+    for cid, ch in enumerate(chains):
+        p = parent[ch[0]]
+        pts = [centre[p]] if p >= 0 else [base]
+        rs = [radius[ch[0]]]
+        pts += [centre[v] for v in ch]
+        rs += [radius[v] for v in ch]
+        last = ch[-1]
+        if np.linalg.norm(tip[last] - centre[last]) > 1e-3:
+            pts.append(tip[last])
+            rs.append(radius[last])
+        curves.append(np.array(pts))
+        radii.append(np.array(rs))
+    order = np.zeros(len(chains), dtype=np.int64)
+    for c in range(len(chains)):
+        if chain_parent[c] >= 0:
+            order[c] = order[chain_parent[c]] + 1
+    # skeleton: the base, then the nodes (parents first, so node i + 1 has parent parent[i] + 1 or the base)
+    sk_nodes = np.vstack([base, centre])
+    sk_parent = np.r_[-1, np.where(parent >= 0, parent + 1, 0)]
+    sk_radius = np.r_[radius[0], radius]
+    skel = Skeleton(sk_nodes, sk_parent, sk_radius)
+    return curves, radii, np.array(chain_parent, dtype=np.int64), order, skel, chains
+
+
+def prune_stubs(curves, radii, bparent, border, slack_m: float, factor: float = 3.0, passes: int = 3):
+    """Branches without children that stay within ``factor`` parent radii + ``slack_m`` of the parent's
+    centre line (a bump, or a second chain up the other side of the parent) are bumps of the parent's surface, not branches: left out of the structure
+    (TreeQSM-like; Sylva, not in the papers).  Returns the kept (curves, radii, parents, orders)."""
+    bp = np.asarray(bparent, dtype=np.int64).copy()
+    keep = np.ones(len(curves), dtype=bool)
+    for _ in range(passes):
+        has_child = np.zeros(len(curves), dtype=bool)
+        live = keep & (bp >= 0)
+        has_child[bp[live]] = True
+        drop = []
+        for b in np.flatnonzero(keep & ~has_child & (bp >= 0)):
+            # the farthest the branch gets from its parent's centre line (its vertices, densely sampled)
+            par = curves[bp[b]]
+            reach = float(np.min(np.linalg.norm(curves[b][:, None] - par[None], axis=2), axis=1).max())
+            if reach <= factor * float(radii[bp[b]].max()) + slack_m:
+                drop.append(b)
+        if not drop:
+            break
+        keep[drop] = False
+    idx = np.flatnonzero(keep)
+    new = np.full(len(curves), -1, dtype=np.int64)
+    new[idx] = np.arange(len(idx))
+    return ([curves[i] for i in idx], [radii[i] for i in idx], np.where(bp[idx] >= 0, new[np.maximum(bp[idx], 0)], -1),
+            np.asarray(border)[idx])
+
+
+def _composite(structure: dict, fine: dict, ground_z: float, thick_m: float):
+    """Mesh centre lines: the structure's stems while they are at least ``thick_m`` thick, and the fine
+    level's branches whose points are mostly not on those thick stems (Sylva)."""
+    sc, sr, _, _, _, schains = _branches(structure, ground_z)
+    fc, fr, _, _, _, fchains = _branches(fine, ground_z)
+    thick_node = structure["radius"] >= thick_m
+    lab = structure["label"]
+    thick_pt = np.where(lab >= 0, thick_node[np.maximum(lab, 0)], False)
+    flab = fine["label"]
+    m = len(fine["centre"])
+    ok = flab >= 0
+    share = np.bincount(flab[ok], weights=thick_pt[ok].astype(float), minlength=m) / np.maximum(
+        np.bincount(flab[ok], minlength=m), 1)
+    curves, radii = [], []
+    for c, r, ch in zip(sc, sr, schains):
+        # curve = [start] + chain nodes (+ tip): keep the start and the leading thick nodes
+        keep = 1 + int(np.argmin(np.r_[thick_node[ch], False]))
+        if keep >= 2:
+            curves.append(c[:keep + (1 if keep == len(ch) + 1 and len(c) > keep else 0)])
+            radii.append(r[:len(curves[-1])])
+    for c, r, ch in zip(fc, fr, fchains):
+        if share[ch].mean() < 0.5:
+            curves.append(c)
+            radii.append(r)
+    return simplify_lines(curves, radii)
+
+
+def simplify_lines(curves, radii, tolerance_m: float = 0.003, rel: float = 0.25, passes: int = 4):
+    """Drop interior centre-line points that lie within ``tolerance_m`` + ``rel`` × radius of the chord of
+    their neighbours and whose radius is within ``rel`` of their neighbours' mean (every other candidate
+    per pass; Sylva: a lighter mesh with the same surface to a few millimetres)."""
+    out_c, out_r = [], []
+    pts = np.concatenate(curves) if curves else np.zeros((0, 3))
+    rad = np.concatenate(radii) if radii else np.zeros(0)
+    off = np.r_[0, np.cumsum([len(c) for c in curves])]
+    keep = np.ones(len(pts), dtype=bool)
+    for _ in range(passes):
+        idx = np.flatnonzero(keep)
+        lid = np.searchsorted(off, idx, side="right") - 1
+        inner = np.r_[False, (lid[1:-1] == lid[:-2]) & (lid[1:-1] == lid[2:]), False] if len(idx) > 2 \
+            else np.zeros(len(idx), bool)
+        i = np.flatnonzero(inner)
+        if not len(i):
+            break
+        a, p, b = pts[idx[i - 1]], pts[idx[i]], pts[idx[i + 1]]
+        ab = b - a
+        t = np.clip(((p - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
+        dev = np.linalg.norm(a + t[:, None] * ab - p, axis=1)
+        rm = (rad[idx[i - 1]] + rad[idx[i + 1]]) / 2
+        cand = (dev <= tolerance_m + rel * rad[idx[i]]) & (np.abs(rad[idx[i]] - rm) <= rel * np.maximum(rad[idx[i]], 1e-3))
+        ci = i[cand]
+        if not len(ci):
+            break
+        take = np.r_[True, np.diff(ci) > 1]        # no two neighbours in one pass
+        keep[idx[ci[take]]] = False
+    for k in range(len(curves)):
+        m = keep[off[k]:off[k + 1]]
+        out_c.append(curves[k][m])
+        out_r.append(radii[k][m])
+    return out_c, out_r
+
+
+def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m: float = 0.03,
+              thin_sides: int = 3, thin_radius_m: float = 0.008):
+    """(vertices, faces) of all branch tubes, swept in three batches by thickness (RMF frames, capped):
+    ``sides`` for branches whose largest radius reaches ``twig_radius_m``, ``twig_sides`` for thinner
+    ones, ``thin_sides`` under ``thin_radius_m`` (Sylva: the polygon is finer where it is seen)."""
+    from ..geometry import _dedupe, _tube_batch
+
+    vs, fs, nv = [], [], 0
+    rmax = np.array([float(np.max(r)) if len(r) else 0.0 for r in radii])
+    for lo, hi, s in ((twig_radius_m, np.inf, sides), (thin_radius_m, twig_radius_m, twig_sides),
+                      (-1.0, thin_radius_m, thin_sides)):
+        sel = [k for k in range(len(curves)) if lo <= rmax[k] < hi and len(curves[k]) >= 2]
+        if not sel:
+            continue
+        pts = np.concatenate([curves[k] for k in sel])
+        rad = np.concatenate([radii[k] for k in sel])
+        off = np.r_[0, np.cumsum([len(curves[k]) for k in sel])]
+        pts, rad, off, _ = _dedupe(pts, rad, off)
+        if len(pts) == 0:
+            continue
+        v, f, _ = _tube_batch(pts, rad, off, max(3, int(s)), True)
+        vs.append(v)
+        fs.append(f + nv)
+        nv += len(v)
+    if not vs:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    return np.vstack(vs), np.vstack(fs)
+
+
+def line_cylinders(curves, radii, branch_parent, branch_order) -> dict:
+    """The TreeQSM-like cylinder table of the centre lines (as :func:`sylva.core.qsm.cylinders_from_curves`,
+    vectorised): a cylinder per segment, radius the mean of its two ends; the first cylinder of a branch
+    has as parent the parent branch's cylinder nearest its start."""
+    nb = len(curves)
+    lens = np.array([len(c) for c in curves], dtype=np.int64)
+    pts = np.concatenate(curves) if nb else np.zeros((0, 3))
+    rad = np.concatenate(radii) if nb else np.zeros(0)
+    off = np.r_[0, np.cumsum(lens)]
+    lid = np.repeat(np.arange(nb), lens)
+    seg = np.flatnonzero(lid[:-1] == lid[1:]) if len(pts) > 1 else np.zeros(0, np.int64)
+    vec = pts[seg + 1] - pts[seg]
+    L = np.linalg.norm(vec, axis=1)
+    ok = L > 1e-9
+    seg, vec, L = seg[ok], vec[ok], L[ok]
+    br = lid[seg]
+    n = len(seg)
+    start = pts[seg]
+    par = np.arange(n) - 1
+    first = np.r_[True, br[1:] != br[:-1]] if n else np.zeros(0, bool)
+    par[first] = -1
+    bp = np.asarray(branch_parent, dtype=np.int64)
+    fi = np.flatnonzero(first)
+    if len(fi):
+        mid = start + vec / 2
+        tree = cKDTree(mid) if n else None
+        # nearest cylinder of the parent branch to each branch's start
+        kq = min(16, n)
+        _, cand = tree.query(start[fi], k=kq)
+        cand = np.asarray(cand).reshape(len(fi), kq)
+        want = bp[br[fi]]
+        hit = br[cand] == want[:, None]
+        j = np.argmax(hit, axis=1)
+        got = hit[np.arange(len(fi)), j]
+        par[fi] = np.where(got & (want >= 0), cand[np.arange(len(fi)), j], -1)
+        for i in fi[~got & (want >= 0)]:          # rare: the parent's nearest cylinders are further away
+            pc = np.flatnonzero(br == bp[br[i]])
+            if len(pc):
+                par[i] = pc[np.argmin(np.linalg.norm(mid[pc] - start[i], axis=1))]
+    return dict(id=np.arange(n, dtype=np.int64), parent=par.astype(np.int64), branch=br.astype(np.int64),
+                order=np.asarray(branch_order, dtype=np.int64)[br] if n else np.zeros(0, np.int64),
+                start=start, axis=vec / L[:, None] if n else np.zeros((0, 3)), length=L,
+                radius=(rad[seg] + rad[seg + 1]) / 2)

@@ -1,0 +1,88 @@
+"""QGIS desktop, as a user meets it: the pipeline's dialog loads its layers styled, and a NEW 3D map view shows
+the trees with the camera it starts with (QGIS 3.22, its flat terrain at 0 m).
+
+One desktop session under Xvfb (``scripts/render_3d.py``'s ``desktop_session``: ``xvfb-run qgis --code
+scripts/desktop_outputs.py``) runs ``sylva:pipeline`` from its dialog on the bundled sample (Run pressed), then
+``sylva:exportmodels`` from its dialog on the run's GLB; the screenshots stay in pytest's temporary folder.
+"""
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import render_3d  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+FOREST = {"trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d"}
+
+
+@pytest.fixture(scope="module")
+def session(sample_laz, tmp_path_factory):
+    if shutil.which("xvfb-run") is None or shutil.which("qgis") is None:
+        pytest.skip("needs xvfb-run and the QGIS desktop (Debian: apt-get install -y xvfb qgis)")
+    if not (ROOT / ".qgis-profile").is_dir():
+        pytest.skip("no .qgis-profile with the plugin enabled: run scripts/setup.sh")
+    work = tmp_path_factory.mktemp("desktop")
+    report = render_3d.desktop_session(Path(sample_laz).resolve(), work, timeout_s=1500)
+    assert report.get("error") is None and report["returncode"] == 0, (report.get("error"), report["log"])
+    return report, Path(report["shots"])
+
+
+def test_pipeline_dialog_loads_the_run_styled(session):
+    report, _ = session
+    layers = {layer["name"]: layer for layer in report["layers"]}
+    assert set(layers) == FOREST | {"DTM (terrain)", "CHM (canopy height)"}
+    for name in FOREST:
+        assert layers[name]["source"].endswith(f"forest.gpkg|layername={name}")
+        assert layers[name]["features"] > 0
+    assert layers["crowns"]["renderer"] == "graduatedSymbol"            # crowns.qml, by height
+    assert layers["tree_tops"]["renderer"] == "singleSymbol"
+    assert layers["models_3d"]["renderer3d"] == "vector" and layers["models_3d"]["renderer"] == "nullSymbol"
+    assert layers["CHM (canopy height)"]["renderer"] == "singlebandpseudocolor"
+    assert layers["DTM (terrain)"]["renderer"] == "hillshade"
+    assert layers["DTM (terrain)"]["source"].endswith("dtm.vrt")
+    # the busy point layers are loaded but hidden; the rasters lie under the vectors, the DTM at the bottom
+    assert not layers["crown_points"]["visible"] and not layers["stem_points"]["visible"]
+    assert layers["crowns"]["visible"] and layers["models_3d"]["visible"]
+    order = [layer["name"] for layer in report["layers"]]
+    assert order[-2:] == ["CHM (canopy height)", "DTM (terrain)"]
+
+
+def _spread(mask: np.ndarray, n: int = 3) -> int:
+    h, w = mask.shape
+    return sum(bool(mask[i * h // n:(i + 1) * h // n, j * w // n:(j + 1) * w // n].any())
+               for i in range(n) for j in range(n))
+
+
+def test_new_3d_view_shows_the_trees(session):
+    _, shots = session
+    rgb = render_3d.pixels(shots / "view3d_pipeline.png")
+    assert rgb.shape[0] > 500 and rgb.shape[1] > 600          # the 3D canvas, not the whole dock
+    trees = render_3d.tree_pixels(rgb)
+    assert trees.mean() > 0.02                                 # 4.6 % on the sample (bare wood, from above)
+    assert _spread(trees) == 9                                 # trees all over the view, not a corner
+    # the colour test finds no tree in the same view without the models (the maps under them)
+    assert render_3d.tree_share(shots / "view3d_pipeline_no_models.png") < 0.001
+    # the 2D map drawn on the terrain is there too (crowns' greens)
+    r, g, b = (rgb[..., i].astype(int) for i in range(3))
+    assert ((g > r + 10) & (g > b + 5)).mean() > 0.05
+
+
+def test_new_3d_view_after_exportmodels_shows_the_trees(session):
+    report, shots = session
+    (layer,) = report["export_layers"]
+    assert layer["renderer3d"] == "vector" and layer["features"] > 0
+    trees = render_3d.tree_pixels(render_3d.pixels(shots / "view3d_exportmodels.png"))
+    assert trees.mean() > 0.02 and _spread(trees) == 9
+
+
+def test_crowns_map_shows_styled_crowns(session):
+    _, shots = session
+    rgb = render_3d.pixels(shots / "crowns_2d.png").astype(int)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    assert ((g > r + 10) & (g > b + 5)).mean() > 0.2           # crowns (greens) cover much of the map
