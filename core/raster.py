@@ -16,6 +16,7 @@ data value goes into GDAL's ``GDAL_NODATA`` tag (42113).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Tuple
