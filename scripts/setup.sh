@@ -53,7 +53,9 @@ fi
 
 # Compile and cache the numba kernels now, so that the first run is not a minute of silence
 # (plugin/warmup.py; a stamp makes a second set-up skip it in a second).
-.venv/bin/python -m sylva.plugin.warmup --if-needed
+# Imported through .qgis-plugins/sylva, the path QGIS loads the plugin from (numba keys a NUMBA_CACHE_DIR
+# cache by the source's path; the default cache beside the sources serves the CLI as well).
+PYTHONPATH="$root/.qgis-plugins${PYTHONPATH:+:$PYTHONPATH}" .venv/bin/python -m sylva.plugin.warmup --if-needed
 
 if [ "$viewers" = 1 ]; then
     lock="tools/viewers/package-lock.json"
