@@ -10,7 +10,8 @@ to the writer.  For each code (``--ref``, exported with ``git archive`` into a
 temporary folder, and this checkout) it times, in separate processes run in
 turn (best of ``--repeat``, CPU seconds of the process, then wall seconds):
 
-* ``tile``:    writing the tile's part (``write_gpkg`` of the seven layers);
+* ``tile``:    writing the tile's part (``write_gpkg`` of the seven layers); for this checkout also the
+  same layers written feature by feature through OGR (``ogr_write``: what "GDAL only" costs here);
 * ``forest``:  the sample's forest.gpkg = the part written + merged alone (``merge_gpkg``);
 * ``merge N``: merging ``--parts`` copies of the part (a multi-tile run: 100 parts of the
   sample's size are about the pipeline's 1 km^2), per part and in total;
@@ -78,7 +79,49 @@ def load_tables(forest: Path):
     return tables
 
 
-def measure(forest: str, folder: str, parts: int, repeat: int) -> dict:
+def ogr_write(path: Path, tables) -> None:
+    """The same layers written feature by feature through OGR (one transaction, GDAL's own R-trees): the
+    GDAL-only way on GDAL < 3.8 (no Arrow writing), which write_gpkg's bulk rows are measured against."""
+    import shapely
+    from osgeo import ogr, osr
+
+    if path.exists():
+        path.unlink()
+    ds = ogr.GetDriverByName("GPKG").CreateDataSource(str(path))
+    kinds = {"i": ogr.OFTInteger64, "u": ogr.OFTInteger64, "b": ogr.OFTInteger64, "f": ogr.OFTReal}
+    for t in tables:
+        srs = osr.SpatialReference()
+        srs.ImportFromEPSG(t.crs.to_epsg())
+        gtype = {"none": ogr.wkbNone, "point": ogr.wkbPoint, "line": ogr.wkbMultiLineString,
+                 "polygon": ogr.wkbMultiPolygon}[t.geometry_type]
+        if gtype != ogr.wkbNone:
+            gtype = ogr.GT_SetModifier(gtype, t.has_z, t.has_m)
+        layer = ds.CreateLayer(t.name, srs, gtype, ["GEOMETRY_NAME=geom", "FID=fid"])
+        for c, v in t.columns.items():
+            layer.CreateField(ogr.FieldDefn(c, kinds.get(v.dtype.kind, ogr.OFTString)))
+        defn = layer.GetLayerDefn()
+        cols = [v.tolist() for v in t.columns.values()]
+        wkb = None
+        if t.geometry_type != "none":
+            wkb = list(t.geometries) if t.raw else shapely.to_wkb(
+                shapely.from_wkb(shapely.to_wkb(t.geometries)), output_dimension=3 if t.has_z else 2,
+                flavor="iso").tolist()
+        layer.StartTransaction()
+        for i in range(len(t)):
+            f = ogr.Feature(defn)
+            if wkb is not None and wkb[i] is not None:
+                g = ogr.CreateGeometryFromWkb(bytes(wkb[i]))
+                f.SetGeometryDirectly(ogr.ForceTo(g, gtype) if t.geometry_type != "point" else g)
+            for j, col in enumerate(cols):
+                v = col[i]
+                if v is not None and v == v:
+                    f.SetField(j, v)
+            layer.CreateFeature(f)
+        layer.CommitTransaction()
+    ds = None
+
+
+def measure(forest: str, folder: str, parts: int, repeat: int, with_ogr: bool = False) -> dict:
     """Run in a subprocess whose sys.path holds the code to measure."""
     from sylva.core.catalog import merge_gpkg
     from sylva.core.io.gpkg import write_gpkg
@@ -96,6 +139,8 @@ def measure(forest: str, folder: str, parts: int, repeat: int) -> dict:
                 best[key] = (cpu, wall)
 
     part = out / "part.gpkg"
+    if with_ogr:
+        timed("ogr", lambda: ogr_write(out / "ogr.gpkg", tables))
     timed("tile", lambda: write_gpkg(part, tables))
     timed("forest", lambda: (write_gpkg(part, tables), merge_gpkg([part], out / "forest.gpkg")))
     many = [part] * parts
@@ -133,9 +178,10 @@ def main() -> None:
     ap.add_argument("--parts", type=int, default=100)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--_measure", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--_ogr", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args._measure:
-        print(json.dumps(measure(args._measure[0], args._measure[1], args.parts, args.repeat)))
+        print(json.dumps(measure(args._measure[0], args._measure[1], args.parts, args.repeat, args._ogr)))
         return
     with tempfile.TemporaryDirectory(prefix="sylva-gpkg-bench-") as tmp:
         tmp = Path(tmp)
@@ -155,7 +201,7 @@ def main() -> None:
             run = subprocess.run([sys.executable, "-c", "import runpy, sys; sys.argv = sys.argv[1:]; "
                                   "runpy.run_path(sys.argv[0], run_name='__main__')", str(Path(__file__).resolve()),
                                   "--parts", str(args.parts), "--repeat", str(args.repeat),
-                                  "--_measure", str(forest), str(work)],
+                                  "--_measure", str(forest), str(work)] + ([] if code else ["--_ogr"]),
                                  env=env, capture_output=True, text=True, cwd=str(tmp))
             if run.returncode:
                 sys.exit(f"{label}: {run.stderr.strip().splitlines()[-1]}")
@@ -172,6 +218,8 @@ def main() -> None:
                       ("merge", f"merge of {args.parts} parts")):
         cells = [f"{r['times'][key][0]:.3f} ({r['times'][key][1]:.3f})" for r in results.values()]
         print(f"{text:28}{cells[0]:>26}{cells[1]:>26}")
+    ogr_time = results[labels[1]]["times"]["ogr"]
+    print(f"{'  same, OGR per feature':28}{'':>26}{f'{ogr_time[0]:.3f} ({ogr_time[1]:.3f})':>26}")
     cells = [f"{r['times']['merge'][0] / args.parts * 1000:.1f} ms" for r in results.values()]
     print(f"{'merge per part':28}{cells[0]:>26}{cells[1]:>26}")
     for key, text in (("forest", "validate_gpkg failures"), ("merge", "  (merged file)")):
