@@ -621,16 +621,21 @@ def read_rtree(con: sqlite3.Connection, schema: str, rtree: str) -> tuple:
 
 
 def _str_order(boxes: np.ndarray, per: int) -> np.ndarray:
-    """Sort-tile-recursive order of ``boxes`` (n, 4) for nodes of ``per`` entries."""
+    """Sort-tile-recursive order of ``boxes`` (n, 4) for nodes of ``per`` entries.
+
+    Two single-key sorts: by x centre (then slabs of ``slices * per`` entries),
+    then by one float key, slab-major and y centre within the slab.
+    """
     n = len(boxes)
-    cx = (boxes[:, 0].astype(np.float64) + boxes[:, 1]) / 2
-    cy = (boxes[:, 2].astype(np.float64) + boxes[:, 3]) / 2
+    cx = boxes[:, 0].astype(np.float64) + boxes[:, 1]            # twice the centres: the order is the same
+    cy = boxes[:, 2].astype(np.float64) + boxes[:, 3]
     leaves = -(-n // per)
     slices = max(1, int(np.ceil(np.sqrt(leaves))))
-    by_x = np.lexsort((cy, cx))
-    slab = np.empty(n, dtype=np.int64)
-    slab[by_x] = np.arange(n) // (slices * per)
-    return np.lexsort((cx, cy, slab))
+    slab = np.empty(n, dtype=np.float64)
+    slab[np.argsort(cx, kind="stable")] = np.arange(n) // (slices * per)
+    lo, span = cy.min(), cy.max() - cy.min()
+    key = slab * (2.0 * span + 1.0) + (cy - lo)                   # exact enough: slabs apart by > span
+    return np.argsort(key, kind="stable")
 
 
 # --------------------------------------------------------------------------- styles
