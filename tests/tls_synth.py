@@ -33,8 +33,8 @@ def plot_scan(n_trees: int = 12, size_m: float = 20.0, seed: int = 0, spacing_m:
     ground_z = lambda q: q @ slope   # noqa: E731
     pts, tree = [], []
     for t in range(n_trees):
-        r0 = dbh[t] / 2 * 1.05
         stem_h = 0.6 * height[t]
+        r0 = dbh[t] / 2 / (1 - 0.7 * 1.3 / stem_h)       # the taper below gives DBH at 1.3 m
         nz = int(stem_h / spacing_m)
         na = max(12, int(2 * np.pi * r0 / spacing_m))
         z, a = np.meshgrid(np.arange(nz) * spacing_m, np.arange(na) * 2 * np.pi / na, indexing="ij")
