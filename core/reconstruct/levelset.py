@@ -47,6 +47,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
 from .model import Reconstruction, Skeleton, TreePoints, screen
 
@@ -250,14 +251,16 @@ def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=Non
     # (the graph's edges, and links to the 16 nearest points within ``merge_spacing`` point spacings or a
     # bin: a thick stem cut into bins narrower than its point spacing stays one ring per bin)
     coo = g.tocoo()
-    kk = min(16, n - 1)
-    dq, nq = cKDTree(xyz).query(xyz, k=kk + 1, distance_upper_bound=max(opt.merge_spacing * spacing, bin_m_real),
-                                workers=-1)
-    qi = np.repeat(np.arange(n), kk)
-    qj = nq[:, 1:].ravel()
-    live = (qj < n) & (opt.merge_spacing > 0)
-    rows = np.r_[coo.row, qi[live]]
-    cols = np.r_[coo.col, qj[live]]
+    rows, cols = coo.row, coo.col
+    if opt.merge_spacing > 0:
+        kk = min(16, n - 1)
+        _, nq = cKDTree(xyz).query(xyz, k=kk + 1, distance_upper_bound=max(opt.merge_spacing * spacing, bin_m_real),
+                                   workers=-1)
+        qi = np.repeat(np.arange(n), kk)
+        qj = nq[:, 1:].ravel()
+        live = qj < n
+        rows = np.r_[rows, qi[live]]
+        cols = np.r_[cols, qj[live]]
     same = (b[rows] == b[cols]) & (b[rows] >= 0)
     sub = sparse.csr_matrix((np.ones(same.sum()), (rows[same], cols[same])), shape=(n, n))
     _, comp = csgraph.connected_components(sub, directed=False)
@@ -442,6 +445,24 @@ def _group_median(values, groups, n):
     return out
 
 
+@njit
+def _best_child(parent, cnt):
+    """Per node the child carrying the most points downstream (-1 for none); parents come first."""
+    m = parent.shape[0]
+    load = cnt.copy()
+    for i in range(m - 1, 0, -1):
+        if parent[i] >= 0:
+            load[parent[i]] += load[i]
+    best = np.full(m, -1, dtype=np.int64)
+    best_load = np.full(m, -1.0)
+    for i in range(m):
+        p = parent[i]
+        if p >= 0 and load[i] > best_load[p]:
+            best[p] = i
+            best_load[p] = load[i]
+    return best
+
+
 def _branches(nodes: dict, ground_z: float):
     """Branch centre lines and radii from the level-set nodes; the skeleton (base node first).
 
@@ -452,16 +473,7 @@ def _branches(nodes: dict, ground_z: float):
     """
     centre, radius, parent, cnt, tip = nodes["centre"], nodes["radius"].copy(), nodes["parent"], nodes["count"], nodes["tip"]
     m = len(centre)
-    load = cnt.copy()
-    for i in range(m - 1, 0, -1):          # parents come first: accumulate downstream points
-        if parent[i] >= 0:
-            load[parent[i]] += load[i]
-    best = np.full(m, -1, dtype=np.int64)
-    best_load = np.full(m, -1.0)
-    for i in range(m):
-        p = parent[i]
-        if p >= 0 and load[i] > best_load[p]:
-            best[p], best_load[p] = i, load[i]
+    best = _best_child(parent, cnt)
     chains, chain_parent, chain_of = [], [], np.full(m, -1, dtype=np.int64)
     starts = [0] + [i for i in range(1, m) if parent[i] < 0 or best[parent[i]] != i]
     for s in starts:

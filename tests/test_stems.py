@@ -1,0 +1,59 @@
+"""Stem-based segmentation of terrestrial plot scans (core/segment/stems.py) on synthetic plots with known stems."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sylva.core.cloud import PointCloud
+from sylva.core.segment import segment_trees
+from sylva.core.segment.stems import StemSegmentation, ground_under_canopy
+
+from tls_synth import plot_scan
+
+
+def _match(stems_xy, truth, tol=0.3):
+    t = np.c_[truth["x"], truth["y"]]
+    d = np.linalg.norm(stems_xy[:, None] - t[None], axis=2)
+    j = d.argmin(axis=1)
+    ok = d[np.arange(len(j)), j] < tol
+    return j, ok, d[np.arange(len(j)), j]
+
+
+def test_stems_found_measured_and_points_assigned():
+    pts, truth = plot_scan(n_trees=8, size_m=16, seed=1)
+    cloud = PointCloud(pts, {})
+    labels, stems = StemSegmentation().segment_with_stems(cloud)
+    xy = stems.xy + cloud.origin[:2]
+    j, ok, err = _match(xy, truth)
+    recall = len(set(j[ok])) / len(truth["x"])
+    precision = ok.mean()
+    assert recall >= 0.85 and precision >= 0.9, (recall, precision)
+    assert np.sqrt(np.mean((stems.dbh_m[ok] - truth["dbh"][j[ok]]) ** 2)) < 0.03        # DBH RMSE < 3 cm
+    assert err[ok].max() < 0.1
+    # the stem points of a found tree get its ID; ground points none
+    for k in np.flatnonzero(ok):
+        mine = truth["tree"] == j[k] + 1
+        assert (labels[mine] == k + 1).mean() > 0.8
+    assert (labels[truth["tree"] == 0] == 0).mean() > 0.95
+
+
+def test_ground_under_canopy_follows_a_slope():
+    rng = np.random.default_rng(0)
+    g = rng.uniform(0, 20, (4000, 2))
+    ground = np.c_[g, 0.1 * g[:, 0]]
+    canopy = np.c_[rng.uniform(0, 20, (4000, 2)), rng.uniform(5, 15, 4000)]
+    xyz = np.vstack([ground, canopy])
+    z = ground_under_canopy(xyz)
+    assert np.abs(z[:4000] - ground[:, 2]).max() < 0.1
+    assert np.abs(z[4000:] - 0.1 * canopy[:, 0]).mean() < 0.1
+
+
+def test_segment_trees_verb_dispatches_to_stems():
+    pts, truth = plot_scan(n_trees=4, size_m=12, seed=2)
+    labels = segment_trees(PointCloud(pts, {"height": pts[:, 2] - 0.0}), StemSegmentation())
+    assert labels.dtype == np.int32 and labels.max() >= 3
+
+
+def test_bad_parameters_say_which():
+    with pytest.raises(Exception, match="slice"):
+        StemSegmentation(slice_low_m=2.0, slice_high_m=1.0)
