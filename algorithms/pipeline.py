@@ -127,6 +127,10 @@ PIPELINE = Algorithm(
         Param("TILE_COUNT", NUMBER_RESULT, "Number of tiles", help="Tiles of the run."),
         Param("FAILED_TILES", NUMBER_RESULT, "Failed tiles", help="Tiles that failed (see report.txt)."),
         Param("GEOPACKAGE", STRING_RESULT, "Forest GeoPackage", help="The path of forest.gpkg."),
+        Param("DTM", STRING_RESULT, "Terrain model (dtm.vrt)",
+              help="The path of dtm.vrt: the tiles' 1 m terrain (CRS elevations), a DEM for the 3D view."),
+        Param("CHM", STRING_RESULT, "Canopy height model (chm.vrt)",
+              help="The path of chm.vrt: the tiles' 0.5 m canopy heights (m)."),
     ),
 )
 
