@@ -466,13 +466,15 @@ def test_ctrl_c_during_start_up_is_one_line(sample_laz, tmp_path):
 
 
 def test_omitted_outputs_leave_no_temporary_folder(corner, tmp_path):
-    import tempfile
-
-    before = set(Path(tempfile.gettempdir()).glob("sylva-*"))
-    out = sylva("canopyheightmodel", f"--INPUT={corner / 'c_0_0.laz'}", "--PIT_FREE=false")
+    private = tmp_path / "tmp"      # the command's own TMPDIR: other programs share /tmp
+    private.mkdir()
+    env = dict(os.environ, TMPDIR=str(private))
+    out = sylva("canopyheightmodel", f"--INPUT={corner / 'c_0_0.laz'}", "--PIT_FREE=false", env=env)
     assert out.returncode == 0, out.stderr
     assert "not kept" in out.stdout
-    assert set(Path(tempfile.gettempdir()).glob("sylva-*")) <= before
+    out = sylva("canopyheightmodel", f"--INPUT={corner / 'c_0_0.laz'}", "--RESOLUTION_M=nan", env=env)
+    assert out.returncode == 1
+    assert [p.name for p in private.iterdir() if p.name.startswith("sylva-")] == []
 
 
 # --------------------------------------------------------------------------- files and names
