@@ -32,6 +32,13 @@ bounding cylinders, §2.3):
   the parent's centre to the farthest point of the tip, and the TreeQSM-like
   cylinder table of those centre lines (:mod:`sylva.core.qsm`).
 
+Two scales (Sylva): a first pass with bins of ``bin_spacing`` point spacings gives every point the
+radius of its piece; the structure (skeleton, branches, QSM) is then binned in widths of ``adaptive``
+times that radius (wide bins keep a thick stem's cross-section whole, narrow ones follow twigs), and its
+stubs (leaf branches that stay within three parent radii + three bins of the parent, :func:`prune_stubs`)
+are dropped; the wood mesh comes from a third pass with narrow bins everywhere (``fine_spacing`` point
+spacings, at least ``min_bin_m``), whose tubes follow the points most closely.
+
 Everything is vectorised (scipy's kd-tree, Dijkstra and connected
 components; bincount sums): ~0.1–0.3 s for 10,000–20,000 points.
 ``benchmarks/dense.py`` measures the written GLB against the scans.

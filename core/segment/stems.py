@@ -16,9 +16,10 @@ slice at breast height and every other point follows its stem.  This module does
    returns are used, which a terrestrial scan has under any canopy.
 2. **Stem detection** (Cabo et al. 2018 §2.2–2.3): the points between ``slice_low_m`` and
    ``slice_high_m`` above ground are clustered (DBSCAN, ``cluster_m``); a cluster is a stem when it
-   spans most of the slice's height, its points fit a circle (algebraic fit refined by Gauss-Newton)
-   with an RMS residual under ``max_rms_rel`` of the radius + 1 cm over at least ``min_arc_deg``, and its
-   diameter is between ``min_dbh_m`` and ``max_dbh_m``.  That circle is the stem's DBH estimate.
+   spans most of the slice's height and in at least two of three sub-slices its points fit a circle
+   (algebraic fit refined by Gauss-Newton) with an RMS residual under ``max_rms_rel`` of the radius + 1 cm
+   over at least ``min_arc_deg``, of a diameter between ``min_dbh_m`` and ``max_dbh_m`` (Sylva: sub-slices
+   for leaning stems).  The median of those circles is the stem's position and DBH.
 3. **Stems followed upward and the rest assigned** (Sylva, after Laino et al.'s assignment of points to
    the stem they are connected to): the points above ground are voxelised (``voxel_m``), voxels linked
    to their neighbours within ``link_m``, and every voxel takes the stem from which its shortest path
@@ -154,13 +155,22 @@ def detect_stems(xyz: np.ndarray, height: np.ndarray, opt: StemSegmentation = St
         hz = height[idx]
         if np.ptp(hz) < 0.6 * (opt.slice_high_m - opt.slice_low_m):
             continue                      # does not cross the slice: a branch or a shrub
-        fit = _circle(xyz[idx, :2])
-        if fit is None:
+        # circles in three sub-slices (a leaning or crooked stem smears one circle over the whole slice);
+        # a stem needs two that pass, its DBH and position are their medians
+        edges = np.linspace(opt.slice_low_m, opt.slice_high_m, 4)
+        good = []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            sub = idx[(hz >= lo) & (hz <= hi)]
+            fit = _circle(xyz[sub, :2]) if len(sub) >= 6 else None
+            if fit is None:
+                continue
+            cx, cy, r, rms, arc = fit
+            if opt.min_dbh_m <= 2 * r <= opt.max_dbh_m and rms <= opt.max_rms_rel * r + 0.01 and arc >= opt.min_arc_deg:
+                good.append((cx, cy, 2 * r))
+        if len(good) < 2:
             continue
-        cx, cy, r, rms, arc = fit
-        if not (opt.min_dbh_m <= 2 * r <= opt.max_dbh_m) or rms > opt.max_rms_rel * r + 0.01 or arc < opt.min_arc_deg:
-            continue
-        found.append((cx, cy, 2 * r, idx))
+        g = np.median(np.array(good), axis=0)
+        found.append((float(g[0]), float(g[1]), float(g[2]), idx))
     if not found:
         return empty, np.zeros(0, np.int64), np.zeros(0, np.int32)
     found.sort(key=lambda f: (round(f[0], 3), round(f[1], 3)))
