@@ -34,10 +34,10 @@ def run(args: dict, feedback: Feedback) -> Result:
         from ..core.errors import disk_error
 
         raise disk_error(out, err) from None
-    min_h = float(args["MIN_HEIGHT_M"])
+    from .segment import segmentation_method
+
     options = PipelineOptions(
-        buffer_m=float(args["BUFFER_M"]), segmentation=SEGMENTATION[args["METHOD"]](min_height_m=min_h),
-        window_diameter_m=float(args["WINDOW_DIAMETER_M"]), min_height_m=min_h,
+        buffer_m=float(args["BUFFER_M"]), segmentation=segmentation_method(args),
         reconstruct=bool(args["RECONSTRUCT"]), lod=int(args["LOD"]), leaves=args["LEAVES"],
         billboards=bool(args["BILLBOARDS"]),
         crs=args.get("CRS") or None)
@@ -90,8 +90,10 @@ PIPELINE = Algorithm(
               labels=("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)"),
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "
                    "canopy height model (Dalponte & Coomes 2016)."),
-        Param("WINDOW_DIAMETER_M", NUMBER, "Tree-top window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
-              help="Diameter of the local-maximum window for tree tops."),
+        Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
+              help="Diameter of the local-maximum window that finds the tree tops guiding the "
+                   "segmentation; left empty, each method uses its own measured default (as in "
+                   "segmenttrees: the same chain and the same tops)."),
         Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
               help="Lower tops are not trees."),
         Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,

@@ -116,6 +116,8 @@ NCUT_PARAMS = method_params(NormalizedCut, {
            "apex_sectors": (1, 8)},
    prefix="Normalised cut: ")
 
+
+
 CHM_PARAMS = method_params(ChmRegionGrowing, {
     "resolution_m": ("cell size (m)", "Cell size of the canopy height model the crowns grow on."),
     "th_seed": ("seed threshold (share of top)", "A cell joins a tree when higher than this fraction of "
@@ -132,27 +134,31 @@ METHODS = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
 SEGMENTATION_LABELS = ("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)")
 
 
+def segmentation_method(args: dict):
+    """The segmentation method value of METHOD and its parameters (segmenttrees and pipeline)."""
+    cls = METHODS[args["METHOD"]]
+    fixed = {"min_height_m": args["MIN_HEIGHT_M"]}
+    window = args.get("TOP_WINDOW_M")
+    if window is not None and window == window and window > 0:   # empty (None or NaN from QGIS): the method's own
+        fixed["top_window_m"] = window
+        if cls is NormalizedCut:
+            fixed["top_window_points"] = 0.0   # the user's window, exactly
+    return build_method(cls, args, **fixed)
+
+
 def run_segment(args: dict, feedback: Feedback) -> Result:
     import shapely
 
     from ..core.io.las import write_las
     from ..core.measure import CrownBase, tree_metrics
-    from ..core.segment import segment_trees
-    from ..core.terrain import normalize
+    from ..core.segment.tile import segment_tile
 
     source = load_cloud(args, feedback)
-    cloud, keep = drop_noise(source, feedback)
-    feedback.progress(0.02, "height above ground")
-    cloud = normalize(cloud)
-    cls = METHODS[args["METHOD"]]
-    fixed = {"min_height_m": args["MIN_HEIGHT_M"]}
-    if args.get("TOP_WINDOW_M"):
-        fixed["top_window_m"] = args["TOP_WINDOW_M"]
-        if cls is NormalizedCut:
-            fixed["top_window_points"] = 0.0   # the user's window, exactly
-    method = build_method(cls, args, **fixed)
-    labels = segment_trees(cloud, method, progress=scaled(feedback.progress, 0.1, 0.8),
-                           cancelled=feedback.cancelled)
+    seg = segment_tile(source, segmentation_method(args), progress=scaled(feedback.progress, 0.02, 0.8),
+                       cancelled=feedback.cancelled)
+    cloud, keep, labels = seg.cloud, seg.keep, seg.labels
+    if not keep.all():
+        feedback.info(f"{int((~keep).sum()):,} noise points left out (classes 7/18, withheld, isolated)")
     feedback.progress(0.8, "measuring trees")
     m = tree_metrics(cloud, labels, hull=args["HULL"], concavity=args["CONCAVITY"],
                      crown_base=CrownBase(gap_m=args["CROWN_BASE_GAP_M"]))

@@ -56,68 +56,178 @@ def _metrics():
 def _methods():
     from sylva.core.segment import ChmRegionGrowing, NormalizedCut
 
-    return [("NormalizedCut", NormalizedCut()), ("ChmRegionGrowing", ChmRegionGrowing())]
+    return [("ncut", NormalizedCut()), ("chm", ChmRegionGrowing())]
 
 
-def accuracy_table(stands=("open", "medium", "dense"), densities=(5, 20, 50)):
+def _suite_scan(kind, structure, density, seed=0):
+    """(stand, scan) of the extended suite: kind conifer (core/synth presets), broadleaf or mixed
+    (sylva/testing/crowns.py)."""
     from sylva.core import synth
+    from sylva.testing import crowns
+
+    if kind == "conifer":
+        stand_spec, scan_spec = synth.preset(structure, pulse_density=density, seed=seed)
+        stand = synth.make_stand(stand_spec)
+    else:
+        stand, scan_spec = crowns.suite_preset(kind, structure, density, seed=seed)
+    return stand, synth.simulate_scan(stand, scan_spec)
+
+
+def _pipeline_labels(scan, tmp):
+    """treeID of every point of the scan through sylva:pipeline's run_catalog (one tile, no models)."""
+    import laspy
+
+    from sylva.core import synth
+    from sylva.core.catalog import run_catalog
+    from sylva.core.pipeline import PipelineOptions
+
+    laz, _ = synth.write_scan(scan, tmp, "stand")
+    run_catalog([str(laz)], str(Path(tmp) / "out"), PipelineOptions(reconstruct=False), resume=False)
+    return np.asarray(laspy.read(str(Path(tmp) / "out" / "tiles" / "stand.laz"))["treeID"])
+
+
+def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "medium", "dense"),
+                   densities=(2, 5, 20, 50), seed=0):
     from sylva.core.segment import segment_trees
     from sylva.core.terrain import normalize
 
     M = _metrics()
-    print("1. Detection and point accuracy on synthetic stands (100 m x 100 m, core/synth presets)")
-    head = f"{'stand':7s} {'pulses/m2':>9s} {'points':>8s} {'trees':>5s}  "
-    names = [n for n, _ in _methods()]
+    print("1. Detection and point accuracy on the extended synthetic suite (100 m x 100 m; conifer: "
+          "core/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed)
+    names = [n for n, _ in _methods()] + ["pipeline"]
+    head = f"{'kind':9s} {'stand':6s} {'p/m2':>4s} {'points':>7s} {'trees':>5s} "
     for n in names:
-        head += f"| {n[:16]:16s} P     R     F1    ptacc  kpt/s "
+        head += f"| {n:8s} {'n':>4s} {'P':>5s} {'R':>5s} {'F1':>5s} {'ptacc':>5s} {'<20':>4s} "
     print(head)
-    for stand_name in stands:
-        for density in densities:
-            stand_spec, scan_spec = synth.preset(stand_name, pulse_density=density)
-            stand = synth.make_stand(stand_spec)
-            scan = synth.simulate_scan(stand, scan_spec)
-            cloud = normalize(scan.cloud)
-            row = f"{stand_name:7s} {density:9d} {len(cloud):8d} {len(stand.trees):5d}  "
-            for _, method in _methods():
-                t0 = time.perf_counter()
-                labels = segment_trees(cloud, method)
-                dt = time.perf_counter() - t0
-                r = M.evaluate(cloud.xyz, cloud.attrs["height"], labels, scan.truth_tree,
-                               stand.trees)
-                row += (f"| {'':16s} {r['precision']:.3f} {r['recall']:.3f} {r['f1']:.3f} "
-                        f"{r['point_accuracy']:.3f}  {len(cloud) / dt / 1e3:5.0f} ")
-            print(row, flush=True)
+    f1s = {n: [] for n in names}
+    for kind in kinds:
+        for stand_name in stands:
+            for density in densities:
+                stand, scan = _suite_scan(kind, stand_name, density, seed)
+                cloud = normalize(scan.cloud)
+                row = f"{kind:9s} {stand_name:6s} {density:4g} {len(cloud):7d} {len(stand.trees):5d} "
+                runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
+                with tempfile.TemporaryDirectory() as tmp:
+                    runs.append(("pipeline", lambda: _pipeline_labels(scan, tmp)))
+                    for name, run in runs:
+                        labels = run()
+                        r = M.evaluate(cloud.xyz, cloud.attrs["height"], labels, scan.truth_tree,
+                                       stand.trees)
+                        _, counts = np.unique(labels[labels > 0], return_counts=True)
+                        small = float((counts < 20).mean()) if len(counts) else 0.0
+                        f1s[name].append((density, r["f1"]))
+                        row += (f"| {'':8s} {r['n_detected']:4d} {r['precision']:.3f} {r['recall']:.3f} "
+                                f"{r['f1']:.3f} {r['point_accuracy']:.3f} {small:4.2f} ")
+                print(row, flush=True)
+    for name, vals in f1s.items():
+        lo = [f for d, f in vals if d < 5]
+        hi = [f for d, f in vals if d >= 5]
+        print(f"   {name:8s} min F1 at >= 5 p/m2: {min(hi) if hi else float('nan'):.3f} "
+              f"(mean {np.mean(hi) if hi else float('nan'):.3f});  at 2 p/m2: "
+              f"{min(lo) if lo else float('nan'):.3f} (mean {np.mean(lo) if lo else float('nan'):.3f})")
     print()
 
 
-def mixed_conifer():
-    path = DATA / "als" / "MixedConifer.laz"
-    print("2. MixedConifer.laz (lidR sample, EPSG:26912, heights normalised) vs lidR's treeID")
-    if not path.exists():
-        print(f"   skipped: {path} not found\n")
-        return
+def _picture(cloud, labels, path, title):
+    """PNG: the CHM (0.5 m, highest point per cell) in grey, each tree's crown outline in colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from shapely import MultiPoint
+
+    xy = cloud.local_xyz()[:, :2]
+    h = np.asarray(cloud.attrs["height"])
+    cell = 0.5
+    ij = np.floor(xy / cell).astype(int)
+    chm = np.zeros(tuple(ij.max(axis=0) + 1))
+    np.maximum.at(chm, (ij[:, 0], ij[:, 1]), np.maximum(h, 0))
+    fig, ax = plt.subplots(figsize=(9, 9))
+    ax.imshow(chm.T, origin="lower", cmap="gray", extent=(0, chm.shape[0] * cell, 0, chm.shape[1] * cell))
+    rng = np.random.default_rng(0)
+    ids = np.unique(labels[labels > 0])
+    for t in ids:
+        pts = xy[labels == t]
+        if len(pts) < 3:
+            continue
+        hull = MultiPoint(pts).convex_hull
+        if hull.geom_type != "Polygon":
+            continue
+        c = rng.uniform(0.2, 1.0, 3)
+        ax.plot(*hull.exterior.xy, color=c, lw=1.2)
+        top = np.argmax(np.where(labels == t, h, -np.inf))
+        ax.plot(xy[top, 0], xy[top, 1], "+", color=c, ms=6)
+    ax.set_title(f"{title}: {len(ids)} trees over the CHM (m)")
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def real_files(out_dir):
+    """MixedConifer agreement with lidR; share of small trees and a crown picture on every real file."""
     import laspy
 
     from sylva.core.cloud import PointCloud
+    from sylva.core.io.las import read_las
     from sylva.core.segment import segment_trees
+    from sylva.core.segment.tile import segment_tile
 
-    las = laspy.read(str(path))
-    xyz = np.column_stack([las.x, las.y, las.z])
-    attrs = {"height": np.asarray(las.z, dtype=np.float64),
-             "classification": np.asarray(las.classification),
-             "intensity": np.asarray(las.intensity)}
-    cloud = PointCloud(xyz, attrs=attrs, source=str(path))
-    ref = np.asarray(las["treeID"])
-    print(f"   {len(cloud)} points; lidR treeID: {len(np.unique(ref[ref > 0]))} trees")
-    for name, method in _methods():
+    M = _metrics()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    print("2. Real files (the pipeline column is sylva.core.segment.tile.segment_tile, the chain "
+          "segmenttrees and the pipeline both run)")
+    path = DATA / "als" / "MixedConifer.laz"
+    if path.exists():
+        las = laspy.read(str(path))
+        xyz = np.column_stack([las.x, las.y, las.z])
+        attrs = {"height": np.asarray(las.z, dtype=np.float64),
+                 "classification": np.asarray(las.classification),
+                 "intensity": np.asarray(las.intensity),
+                 "return_number": np.asarray(las.return_number)}
+        cloud = PointCloud(xyz, attrs=attrs, source=str(path))
+        ref = np.asarray(las["treeID"])
+        n_lidr = len(np.unique(ref[ref > 0]))
+        print(f"   MixedConifer.laz: {len(cloud)} points; lidR treeID: {n_lidr} trees "
+              f"(target: within 15 % of 205, median IoU >= 0.7, < 5 % under 20 points)")
+        runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
+        runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(path))), len(cloud))))
+        for name, run in runs:
+            t0 = time.perf_counter()
+            labels = run()
+            dt = time.perf_counter() - t0
+            _, n_ref, ious = M.crown_iou(xyz[:, :2], labels, ref)
+            _, counts = np.unique(labels[labels > 0], return_counts=True)
+            print(f"   {name:9s} trees {len(counts):4d} ({len(counts) / 205 - 1:+.0%} vs 205)   matched "
+                  f"{len(ious):4d} of {n_ref}   median crown IoU {np.median(ious):.3f}   under 20 points "
+                  f"{(counts < 20).mean():.1%}   smallest {counts.min()}   ({dt:.1f} s)", flush=True)
+        tile = segment_tile(read_las(str(path)))
+        _picture(tile.cloud, tile.labels, out_dir / "MixedConifer.png", "MixedConifer.laz")
+    else:
+        print(f"   skipped: {path} not found")
+    for name in ("autzen_trim.laz", "ahn3_delft.xyz"):
+        path = DATA / "als" / name
+        if not path.exists():
+            print(f"   {name}: skipped, not found")
+            continue
+        from sylva.core.io import read_cloud
+
         t0 = time.perf_counter()
-        labels = segment_trees(cloud, method)
+        tile = segment_tile(read_cloud(str(path)))
         dt = time.perf_counter() - t0
-        n_ours, n_ref, ious = _metrics().crown_iou(xyz[:, :2], labels, ref)
-        print(f"   {name:16s} trees {len(np.unique(labels[labels > 0])):4d}   matched to lidR "
-              f"{len(ious):4d} of {n_ref}   median crown IoU {np.median(ious):.3f}   "
-              f"({dt:.1f} s)")
+        _, counts = np.unique(tile.labels[tile.labels > 0], return_counts=True)
+        png = out_dir / (Path(name).stem + ".png")
+        _picture(tile.cloud, tile.labels, png, name)
+        print(f"   {name}: {len(tile.cloud)} points, {len(counts)} trees, under 20 points "
+              f"{(counts < 20).mean() if len(counts) else 0:.1%}, smallest {counts.min() if len(counts) else 0} "
+              f"({dt:.1f} s); picture {png.name}")
+    print(f"   pictures in {out_dir}")
     print()
+
+
+def _full(tile, n):
+    labels = np.zeros(n, dtype=np.int32)
+    labels[tile.keep] = tile.labels
+    return labels
 
 
 def shipped_sample():
@@ -126,6 +236,7 @@ def shipped_sample():
 
     from sylva.core.io.las import read_las
     from sylva.core.segment import segment_trees
+    from sylva.core.segment.tile import segment_tile
     from sylva.core.synth import read_truth
     from sylva.core.terrain import normalize
 
@@ -137,11 +248,15 @@ def shipped_sample():
     cloud = normalize(read_las(str(laz)))
     truth = np.asarray(laspy.read(str(laz)).true_tree)
     trees = read_truth(laz.with_name("sample_trees.csv"))
-    for name, method in _methods():
-        labels = segment_trees(cloud, method)
+    runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
+    runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(laz))), len(cloud))))
+    for name, run in runs:
+        labels = run()
         r = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], labels, truth, trees)
-        print(f"   {name:16s} trees {r['n_detected']:4d} of {r['n_true']}   P {r['precision']:.3f} "
-              f"R {r['recall']:.3f} F1 {r['f1']:.3f} ptacc {r['point_accuracy']:.3f}")
+        _, counts = np.unique(labels[labels > 0], return_counts=True)
+        print(f"   {name:9s} trees {r['n_detected']:4d} of {r['n_true']}   P {r['precision']:.3f} "
+              f"R {r['recall']:.3f} F1 {r['f1']:.3f} ptacc {r['point_accuracy']:.3f}   under 20 points "
+              f"{(counts < 20).mean():.1%}")
     print()
 
 
@@ -215,10 +330,15 @@ def throughput(sizes):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="throughput at 1 M points only")
+    parser.add_argument("--kinds", default="conifer,broadleaf,mixed",
+                        help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed)")
     parser.add_argument("--stands", default="open,medium,dense",
                         help="comma-separated stands of the accuracy table (open, medium, dense)")
-    parser.add_argument("--densities", default="5,20,50",
+    parser.add_argument("--densities", default="2,5,20,50",
                         help="comma-separated pulse densities of the accuracy table")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic stands")
+    parser.add_argument("--out", default=os.path.join(tempfile.gettempdir(), "sylva-bench-segmentation"),
+                        help="folder of the crown pictures")
     parser.add_argument("--sizes", default=None,
                         help="comma-separated throughput sizes in points (0: no throughput)")
     parser.add_argument("--no-real", action="store_true",
@@ -236,10 +356,11 @@ def main(argv=None):
     if not args.skip_accuracy:
         stands = tuple(s for s in args.stands.split(",") if s)
         densities = tuple(float(d) if "." in d else int(d) for d in args.densities.split(",") if d)
-        if stands and densities:
-            accuracy_table(stands, densities)
+        kinds = tuple(k for k in args.kinds.split(",") if k)
+        if kinds and stands and densities:
+            accuracy_table(kinds, stands, densities, args.seed)
         if not args.no_real:
-            mixed_conifer()
+            real_files(args.out)
             shipped_sample()
     if args.sizes is not None:
         sizes = [int(float(n)) for n in args.sizes.split(",") if float(n) > 0]

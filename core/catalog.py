@@ -689,7 +689,7 @@ def check_options(options: PipelineOptions) -> None:
     """Refuse NaN, infinite or negative run parameters before any tile is read (:class:`ParameterError`)."""
     import math
 
-    for name in ("buffer_m", "window_diameter_m", "min_height_m", "ground_cell_m", "crown_base_gap_m"):
+    for name in ("buffer_m", "ground_cell_m", "crown_base_gap_m"):
         value = getattr(options, name)
         try:
             ok = math.isfinite(float(value)) and float(value) >= 0
@@ -697,8 +697,6 @@ def check_options(options: PipelineOptions) -> None:
             ok = False
         if not ok:
             raise ParameterError(f"{name.upper()}={value}: must be a finite number of metres, 0 or more")
-    if not options.window_diameter_m > 0:
-        raise ParameterError(f"WINDOW_DIAMETER_M={options.window_diameter_m}: must be more than 0")
 
 
 def remove_part_files(out: Path) -> int:

@@ -90,8 +90,9 @@ class PipelineOptions:
     ``buffer_m``: width of the neighbours' ring read around each tile (wider than
     the widest crown).  ``segmentation``: a method value of
     :func:`sylva.core.segment.segment_trees` (default Hu et al. 2017 §4.1
-    normalised cut).  ``window_diameter_m``/``min_height_m``: tree-top local
-    maximum filter.  ``ground_cell_m``: ground points are reduced to the lowest
+    normalised cut); its tree-top search (window, window points, apex rule,
+    minimum height) is a field of the method, as in ``sylva:segmenttrees``:
+    both run :func:`sylva.core.segment.tile.segment_tile`.  ``ground_cell_m``: ground points are reduced to the lowest
     per cell of this size before the TIN of heights (a fine DTM; 0 keeps all).  ``reconstruct``: model every owned tree (skeletons, GLB, 3D
     Tiles) with ``reconstruction`` (default :class:`sylva.core.reconstruct.Hybrid`),
     ``lod`` and ``leaves``; ``billboards`` also builds each tree's billboard (Zhou et al.,
@@ -101,8 +102,6 @@ class PipelineOptions:
 
     buffer_m: float = 15.0
     segmentation: Any = NormalizedCut()
-    window_diameter_m: float = 3.0
-    min_height_m: float = 2.0
     ground_cell_m: float = 0.5
     hull: str = "convex"
     crown_base_gap_m: float = 1.5
@@ -457,12 +456,9 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     from .io.gpkg import write_gpkg
     from .io.las import write_las
     from .measure import CrownBase, tree_metrics
-    from .noise import noise_mask
-    from .progress import check, report
-    from .segment import segment_trees
+    from .progress import check, report, scaled
+    from .segment.tile import segment_tile
     from .table import VectorTable, point_layer
-    from .terrain import SMRF, normalize
-    from .tops import FixedWindow, TreeTops, find_tree_tops
 
     from .jit import compile_seconds
 
@@ -477,21 +473,23 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     own, cloud, warnings = read_buffered(job, progress, cancelled)
     n_own = len(own)
     check(cancelled)
-    keep = ~noise_mask(cloud)
-    kept_idx = np.flatnonzero(keep)
-    # triangles wider than the buffer allows would make heights depend on the tiling
-    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=opts.ground_cell_m, tin_radius_m=opts.buffer_m / 2)
+    # the one segmentation chain (segmenttrees runs it too); triangles wider than the
+    # buffer allows would make heights depend on the tiling
+    report(progress, 0.1, f"{job.name}: segmenting {len(cloud):,} points")
+    seg = segment_tile(cloud, opts.segmentation, ground_cell_m=opts.ground_cell_m,
+                       tin_radius_m=opts.buffer_m / 2, cancelled=cancelled,
+                       progress=scaled(progress, 0.1, 0.55))
+    work, tops = seg.cloud, seg.tops
+    kept_idx = np.flatnonzero(seg.keep)
     rasters = write_tile_rasters(work, job, paths)
-    report(progress, 0.1, f"{job.name}: tree tops")
-    tops = find_tree_tops(work, window=FixedWindow(opts.window_diameter_m), min_height_m=opts.min_height_m,
-                          cancelled=cancelled)
     keys = grid_keys(tops.xyz[:, :2], work.units.horizontal_m)
     gids = tree_ids(keys, opts.id_bits)
-    owner = _top_tiles(work, tops, opts.min_height_m)
+    owner = _top_tiles(work, tops, float(tops.height.min(initial=0.0)))
     owned = owner == job.index
-    seq_tops = TreeTops(tops.xyz, tops.height, np.arange(1, len(tops) + 1, dtype=np.int64), tops.crs)
-    report(progress, 0.15, f"{job.name}: segmenting {len(work):,} points, {len(tops)} tops")
-    labels = segment_trees(work, opts.segmentation, tops=seq_tops, cancelled=cancelled)
+    # the method's labels -> 1..k in the order of the tops
+    seq = np.zeros(int(seg.labels.max(initial=0)) + 1, dtype=np.int64)
+    seq[tops.tree_id] = np.arange(1, len(tops) + 1)
+    labels = seq[seg.labels]
     to_gid = np.concatenate([[0], gids]).astype(np.int64)
     glabels = to_gid[labels]
     owned_gid = np.concatenate([[False], owned])

@@ -252,11 +252,12 @@ def _cell_maxima_kernel(xy, h, cell, max_cells):
 
 
 def _local_maxima(xy: np.ndarray, h: np.ndarray, window: Window,
-                  progress: Progress, cancelled: CancelCheck, cand=None):
+                  progress: Progress, cancelled: CancelCheck, cand=None, diameters=None):
     """Indices of the window maxima among points (xy, h).
 
     ``cand``: indices known to hold every maximum (e.g. the maxima of a
-    narrower window); by default the highest point of each grid cell."""
+    narrower window); by default the highest point of each grid cell.
+    ``diameters`` (per point, optional): a point's window is at least this wide."""
     from .noise import column_bounds, grid_buckets
 
     if cand is None:
@@ -265,6 +266,8 @@ def _local_maxima(xy: np.ndarray, h: np.ndarray, window: Window,
     if len(cand) == 0:
         return cand
     radius = window.diameter(h[cand]) / 2.0
+    if diameters is not None:
+        radius = np.maximum(radius, np.asarray(diameters)[cand] / 2.0)
     # points bucketed in square cells at least as wide as the widest window
     # radius (and few enough cells for the extent), CSR by cell
     lo, hi = column_bounds(xy)
@@ -366,7 +369,8 @@ def _steep(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, rule: SteepApex) -> 
 
 def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
                       isolation_m: Optional[float], apex: Optional[SteepApex],
-                      progress: Progress, cancelled: CancelCheck) -> TreeTops:
+                      progress: Progress, cancelled: CancelCheck, diameters=None,
+                      apex_diameters=None) -> TreeTops:
     from .noise import isolated_points
     from .terrain import _heights
 
@@ -378,10 +382,14 @@ def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
         return _ordered(np.zeros((0, 3)), np.zeros(0), cloud.crs)
     xy = loc[high, :2]
     h = height[high]
+    dia = None if diameters is None else np.asarray(diameters, dtype=np.float64)[high]
+    adia = None if apex_diameters is None else np.asarray(apex_diameters, dtype=np.float64)[high]
+    if dia is not None and adia is not None:
+        adia = np.minimum(adia, np.maximum(dia, window.min_diameter))
     if apex is not None and apex.diameter_m < window.min_diameter:
         # every maximum of the window is one of the narrow window: test only those
-        narrow = _local_maxima(xy, h, FixedWindow(apex.diameter_m), None, cancelled)
-        tops = _local_maxima(xy, h, window, progress, cancelled, cand=narrow)
+        narrow = _local_maxima(xy, h, FixedWindow(apex.diameter_m), None, cancelled, diameters=adia)
+        tops = _local_maxima(xy, h, window, progress, cancelled, cand=narrow, diameters=dia)
         narrow = np.setdiff1d(narrow, tops)
         # a second steep point of one cone: a higher top stands right next to it
         # (tested against the window's tops first: it spares most sector tests)
@@ -390,7 +398,7 @@ def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
         narrow = narrow[~_shadowed(xy, h, narrow, narrow, apex.separation_m)]
         tops = np.concatenate([tops, narrow])
     else:
-        tops = _local_maxima(xy, h, window, progress, cancelled)
+        tops = _local_maxima(xy, h, window, progress, cancelled, diameters=dia)
     tops = high[tops]
     return _ordered(cloud.xyz[tops], height[tops], cloud.crs)
 
@@ -438,7 +446,8 @@ def _tops_from_chm(chm: Raster, window: Window, min_height_m: float,
 def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Window] = None,
                    min_height_m: float = 2.0, isolation_m: Optional[float] = 2.0,
                    progress: Progress = None, cancelled: CancelCheck = None,
-                   apex: Optional[SteepApex] = None) -> TreeTops:
+                   apex: Optional[SteepApex] = None, diameters=None,
+                   apex_diameters=None) -> TreeTops:
     """Tree tops by local-maximum filtering on a normalised cloud or on a CHM raster.
 
     Cloud: a point is a top when no point within the window (diameter from its
@@ -452,7 +461,10 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
     centred on it; variable windows are applied per band of equal radius in cells.
     Either way, equal-height maxima within each other's window count once.
     ``apex``: a :class:`SteepApex` rule adding the steep tips a wide window
-    misses (point clouds only).
+    misses (point clouds only).  ``diameters`` / ``apex_diameters`` (point
+    clouds only, one per point, metres): each point's window (its apex window)
+    is at least this wide, e.g. widened where the scan is sparse
+    (:class:`TopSearch`).
     """
     window = FixedWindow() if window is None else window
     if not hasattr(window, "diameter"):
@@ -468,7 +480,7 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
         if len(cloud_or_chm) == 0:
             raise EmptyInputError(f"{cloud_or_chm.name}: no points to find tree tops in")
         tops = _tops_from_points(cloud_or_chm, window, min_height_m, isolation_m, apex,
-                                 progress, cancelled)
+                                 progress, cancelled, diameters, apex_diameters)
     else:
         raise InputError(f"find_tree_tops needs a PointCloud or a Raster, got {type(cloud_or_chm).__name__}")
     report(progress, 1.0, "tree tops")

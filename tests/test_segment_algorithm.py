@@ -73,3 +73,22 @@ def test_segmenttrees_cli_is_deterministic(tmp_path, sample_laz):
         tables.append(read_gpkg(target, "trees"))
     for name in TREE_FIELDS:
         np.testing.assert_array_equal(tables[0].columns[name], tables[1].columns[name])
+
+
+def test_pipeline_and_segmenttrees_give_the_same_trees(tmp_path, sample_laz):
+    """One chain (issue 16): sylva:pipeline and sylva:segmenttrees run segment_tile on the same tile
+    and give the same partition of its points into trees (IDs differ: the pipeline's come from
+    the tops' positions)."""
+    from sylva.core.catalog import run_catalog
+    from sylva.core.pipeline import PipelineOptions
+
+    run_catalog([str(sample_laz)], str(tmp_path / "pipe"), PipelineOptions(reconstruct=False))
+    seg = tmp_path / "seg.laz"
+    run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "segmenttrees", f"--INPUT={sample_laz}",
+                          f"--OUTPUT={seg}"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    a = np.asarray(laspy.read(str(tmp_path / "pipe" / "tiles" / "sample.laz"))["treeID"])
+    b = np.asarray(laspy.read(str(seg))["treeID"])
+    pairs = np.unique(np.column_stack([a, b]), axis=0)
+    assert len(np.unique(a)) == len(np.unique(b)) == len(pairs) > 200   # a bijection of the labels
+    assert ((a == 0) == (b == 0)).all()

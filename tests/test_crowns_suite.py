@@ -1,0 +1,47 @@
+"""The extended synthetic suite (sylva/testing/crowns.py): clumped broadleaf crowns, mixed stands."""
+import numpy as np
+import pytest
+
+from sylva.core import synth
+from sylva.core.errors import InputError
+from sylva.testing import crowns
+
+
+def test_clumped_crowns_have_their_forms_and_truth():
+    stand = crowns.suite_stand("mixed", "medium", seed=1, width_m=40.0)
+    forms = crowns.crown_forms(stand)
+    assert set(forms.values()) >= {"conifer", "round"} and len(forms) == len(stand.trees)
+    for t in stand.trees:
+        rows = slice(stand.part_ptr[t.tree_id - 1], stand.part_ptr[t.tree_id])
+        kind = stand.parts["kind"][rows]
+        if forms[t.tree_id] == "conifer":
+            assert (kind == synth._CONE).sum() == 1
+            continue
+        clumps = kind == synth._ELLIPSOID
+        assert clumps.sum() >= 6                        # a crown of many leaf clumps
+        top = stand.parts["zt"][rows][clumps].max()
+        assert top - t.ground_z == pytest.approx(t.height)   # truth height: the highest clump
+        # clumps lie within the crown radius of the truth table
+        d = np.hypot(stand.parts["cx"][rows][clumps] - t.x, stand.parts["cy"][rows][clumps] - t.y)
+        assert (d + stand.parts["a"][rows][clumps] <= t.crown_radius_m + 1e-9).all()
+    scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=5.0, seed=1))
+    tree_ids = np.unique(scan.truth_tree[scan.truth_tree > 0])
+    assert len(tree_ids) > 0.9 * len(stand.trees)       # nearly every tree is seen from the air
+    assert "suppressed" in forms.values() or len(stand.trees) < 10
+
+
+def test_profiles_of_the_envelopes():
+    u = np.linspace(0, 1, 11)
+    assert crowns._profile(0.5, "round") == pytest.approx(1.0)
+    assert crowns._profile(0.75, "flat") == pytest.approx(1.0)
+    # flat-topped: still wide near the top; round: narrowing like an ellipse
+    assert crowns._profile(0.95, "flat") > crowns._profile(0.95, "round")
+    assert crowns._profile(0.9, "cylinder") > 0.9
+    assert (crowns._profile(u, "round") >= 0).all() and crowns._profile(1.0, "round") == 0
+
+
+def test_bad_kind_is_one_clear_error():
+    with pytest.raises(InputError, match="kind"):
+        crowns.suite_stand("palm", "open")
+    with pytest.raises(InputError, match="structure"):
+        crowns.suite_stand("broadleaf", "sparse")
