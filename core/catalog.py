@@ -676,7 +676,7 @@ def run_catalog(inputs, out_dir, options: PipelineOptions = PipelineOptions(), w
     with lock:
         removed = remove_part_files(out)   # left by a killed run: we hold the folder now
         try:
-            return _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed)
+            return _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed, c0)
         except OSError as err:
             raise disk_error(err.filename or out, err) from None
         except sqlite3.Error as err:
@@ -810,7 +810,8 @@ def _stale_names(out: Path, names: set) -> set:
     return found
 
 
-def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed_parts) -> RunReport:
+def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, t0, removed_parts,
+         c0: float = 0.0) -> RunReport:
     for sub in ("tiles", "parts", "models"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     if removed_parts:
