@@ -255,6 +255,8 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         k = p.kind
         if k == S.FILE:
             return self.parameterAsFile(parameters, p.name, context)
+        if k in (S.NUMBER, S.INTEGER) and p.optional and parameters.get(p.name) in (None, ""):
+            return None   # an optional number left empty: the method's own default (not 0)
         if k == S.NUMBER:
             return self.parameterAsDouble(parameters, p.name, context)
         if k == S.INTEGER:
@@ -333,7 +335,7 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
     def _sink_path(self, parameters, name, context):
         """The file a feature sink will write (None for memory layers and temporary outputs)."""
         try:
-            text = self.parameterAsOutputLayer(parameters, name, context) or ""
+            text = _destination(parameters, name)
         except Exception:  # noqa: BLE001 — an unusual destination: QGIS checks it itself
             return None
         if not text or text.startswith(("memory:", "ogr:", "postgres:", "TEMPORARY_OUTPUT")) or "://" in text:
@@ -350,7 +352,7 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
 
         files = {}
         for name in names:
-            dest = self.parameterAsOutputLayer(parameters, name, context) or ""
+            dest = _destination(parameters, name)
             if dest.lower().endswith(".gpkg") and "|" not in dest and not dest.startswith("ogr:"):
                 files.setdefault(os.path.normcase(os.path.abspath(dest)), []).append(name)
         return {n: path for path, group in files.items() if len(group) > 1 for n in group}
@@ -437,6 +439,20 @@ class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):
         if not ok and feedback is not None:
             feedback.reportError(f"style {self.qml} not applied: {message}", fatalError=False)
         layer.triggerRepaint()
+
+
+def _destination(parameters, name) -> str:
+    """The destination text of a sink, read without parameterAsOutputLayer: called from the dialog (whose
+    QgsProcessingOutputLayerDefinition asks to load the result), that registers "memory:NAME" as a layer to
+    load, which QGIS then reports as "not correctly generated" and the dialog never finishes."""
+    from qgis.core import QgsProcessingOutputLayerDefinition, QgsProperty
+
+    value = parameters.get(name)
+    if isinstance(value, QgsProcessingOutputLayerDefinition):
+        value = value.sink
+    if isinstance(value, QgsProperty):
+        value = value.staticValue()
+    return "" if value is None else str(value)
 
 
 def _as_multi(geometry, geometry_type):

@@ -17,7 +17,7 @@ from qgis.utils import iface
 REPORT = os.environ["SYLVA_DESKTOP_REPORT"]
 ART = os.environ["SYLVA_DESKTOP_ARTEFACTS"]
 INPUTS = json.loads(os.environ["SYLVA_DESKTOP_INPUTS"])
-TIMEOUT_S = float(os.environ.get("SYLVA_DESKTOP_TIMEOUT", "240"))
+TIMEOUT_S = float(os.environ.get("SYLVA_DESKTOP_TIMEOUT", "120"))
 report = {"algorithms": {}, "error": None, "qgis": None, "interpreter": None, "project_layers": []}
 queue = []
 
