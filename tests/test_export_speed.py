@@ -128,6 +128,7 @@ class _Builder:
     def view(self, data: bytes, target: Optional[int] = None) -> int:
         pad = (-len(self.bin)) % 8
         self.bin.extend(b"\0" * pad)
+        data = data or b"\0"   # glTF: byteLength >= 1 (the fix of issue 17, made in the reference too)
         v = {"buffer": 0, "byteOffset": len(self.bin), "byteLength": len(data)}
         if target is not None:
             v["target"] = target

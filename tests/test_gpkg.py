@@ -636,7 +636,7 @@ def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app)
     m3d = tmp_path / "m3d.gpkg"
     assert main(["--quiet", "exportmodels", f"--INPUT={glb}", f"--MODELS_3D={m3d}"]) == 0
     styled = {all_: {"crowns", "tree_tops", "crown points 'all'"},
-              forest: {"tree_tops", "crowns", "crown_points", "stem_points", "models_3d"}, part: set(),
+              forest: {"tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d"}, part: set(),
               m3d: {"models_3d"}}
     for path, want in styled.items():
         assert validate(path) == "", path
@@ -651,6 +651,6 @@ def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app)
     layer = QgsVectorLayer(f"{named}", "points", "ogr")
     assert layer.isValid() and layer.featureCount() > 10000 and layer.loadDefaultStyle()[1]
     layer = QgsVectorLayer(f"{m3d}|layername=models_3d", "m", "ogr")
-    assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "singleSymbol"
+    assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "nullSymbol"   # 3D only: no 2D symbol
     with closing(sqlite3.connect(m3d)) as con:                     # the 3D symbol travels with the file too
         assert "renderer-3d" in con.execute("SELECT styleQML FROM layer_styles").fetchone()[0]

@@ -401,7 +401,8 @@ def test_column_maxima_grid_equals_sorts():
     rng = np.random.default_rng(9)
     xy = rng.uniform(0, 40, size=(20000, 2))
     z = np.round(rng.uniform(0, 30, size=20000), 1)          # many exact ties
-    ij = np.floor((xy - xy.min(axis=0)) / 0.35).astype(np.int64)
+    ij = np.floor(xy / 0.35).astype(np.int64)                # cells of the local frame, not of the extent
+    ij -= ij.min(axis=0)
     key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     order = np.argsort(-z, kind="stable")
     _, first = np.unique(key[order], return_index=True)

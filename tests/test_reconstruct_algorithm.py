@@ -153,7 +153,7 @@ def _check_qsm_outputs(trees, cyl, br, tcsv, ccsv, bcsv, truth):
     assert start == pytest.approx([c["start_x"][one][0], c["start_y"][one][0], c["start_z"][one][0]], abs=1e-3)
     assert abs(start[0] - OFFSET[0]) < 0.2 and abs(start[2] - OFFSET[2]) < 0.3
     vol = np.pi * c["radius"][one] ** 2 * c["length"][one]
-    assert vol.sum() == pytest.approx(t1["total_volume"], rel=1e-6)
+    assert vol.sum() == pytest.approx(t1["total_volume"], rel=1e-3)   # layers keep 4 significant digits
     stem = one & (c["branch"] == 0)
     assert c["length"][stem].sum() == pytest.approx(truth["height"], abs=0.3)
     assert np.all(c["parent"][one][1:] >= 0) and c["parent"][one][0] == -1
@@ -164,12 +164,12 @@ def _check_qsm_outputs(trees, cyl, br, tcsv, ccsv, bcsv, truth):
     rows = list(csv.DictReader(open(tcsv)))
     r1 = next(r for r in rows if r["tree_id"] == "1")
     assert float(r1["dbh_m"]) == pytest.approx(t1["dbh"], rel=1e-6)
-    assert float(r1["total_volume_m3"]) == pytest.approx(t1["total_volume"], rel=1e-6)
+    assert float(r1["total_volume_m3"]) == pytest.approx(t1["total_volume"], rel=1e-3)   # layer: 4 digits
     assert r1["qsm_method"] == "fitted_cylinders" and r1["dbh_source"] == "measured"
     crow = list(csv.DictReader(open(ccsv)))
     assert len(crow) == len(cyl)
     assert sum(float(r["radius"]) ** 2 * float(r["length"]) * np.pi for r in crow
-               if r["tree_id"] == "1") == pytest.approx(t1["total_volume"], rel=1e-6)
+               if r["tree_id"] == "1") == pytest.approx(t1["total_volume"], rel=1e-3)
     assert len(list(csv.DictReader(open(bcsv)))) == len(br)
 
 
