@@ -163,7 +163,7 @@ def _check_qsm_outputs(trees, cyl, br, tcsv, ccsv, bcsv, truth):
     import csv
     rows = list(csv.DictReader(open(tcsv)))
     r1 = next(r for r in rows if r["tree_id"] == "1")
-    assert float(r1["dbh_m"]) == pytest.approx(t1["dbh"], rel=1e-6)
+    assert float(r1["dbh_m"]) == pytest.approx(t1["dbh"], rel=1e-3)   # layer: 4 digits
     assert float(r1["total_volume_m3"]) == pytest.approx(t1["total_volume"], rel=1e-3)   # layer: 4 digits
     assert r1["qsm_method"] == "fitted_cylinders" and r1["dbh_source"] == "measured"
     crow = list(csv.DictReader(open(ccsv)))
