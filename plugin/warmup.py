@@ -20,7 +20,7 @@ from typing import Callable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "resources" / "sample" / "sample.laz"
-CORNER_M = 20.0
+CORNER_M = 40.0
 #: (algorithm id, extra parameters): every algorithm, and the methods whose kernels differ.
 RUNS = (
     ("canopyheightmodel", {}), ("treetops", {}), ("treetops", {"INPUT": "{chm}"}),
