@@ -12,8 +12,8 @@ import numpy as np
 
 from ..cloud import PointCloud, Units
 from ..errors import EmptyInputError, InputError
-from ..progress import CancelCheck, Progress, check, report
-from .las import _as_crs, _require_linear, units_of
+from ..progress import CancelCheck, Progress, report
+from .xyz import open_point_file
 
 __all__ = ["read_ply"]
 
@@ -23,20 +23,7 @@ def read_ply(path, crs=None, units: Optional[Union[Units, float]] = None, *, all
     """Read the vertices of a PLY file into a :class:`PointCloud` (see the module docstring)."""
     import trimesh
 
-    path = Path(path)
-    where = str(path)
-    if not path.exists():
-        raise InputError(f"{where}: file not found")
-    if path.is_dir():
-        raise InputError(f"{where}: is a folder, not a PLY point cloud")
-    check(cancelled)
-    report(progress, 0.0, f"reading {path.name}")
-    crs = _as_crs(crs, where)
-    if units is None:
-        units = units_of(crs)
-        _require_linear(units, crs, where)
-    elif not isinstance(units, Units):
-        units = Units(horizontal_m=float(units), vertical_m=float(units))
+    path, where, crs, units = open_point_file(path, "PLY point cloud", crs, units, progress, cancelled)
     try:
         with open(path, "rb") as f:
             if f.read(3) != b"ply":

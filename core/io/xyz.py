@@ -182,6 +182,29 @@ def _typed(name, values):
     return values.astype(dtype)
 
 
+def open_point_file(path, kind: str, crs, units, progress: Progress = None, cancelled: CancelCheck = None):
+    """The checks every point-file reader starts with: ``(path, where, crs, units)``.
+
+    Refuses a missing file or a folder (naming ``kind``, e.g. "text point cloud"),
+    reports progress, and resolves ``crs`` and ``units`` (a :class:`Units`, metres per
+    unit, or None for the CRS's units, which must be linear)."""
+    path = Path(path)
+    where = str(path)
+    if not path.exists():
+        raise InputError(f"{where}: file not found")
+    if path.is_dir():
+        raise InputError(f"{where}: is a folder, not a {kind}")
+    check(cancelled)
+    report(progress, 0.0, f"reading {path.name}")
+    crs = _as_crs(crs, where)
+    if units is None:
+        units = units_of(crs)
+        _require_linear(units, crs, where)
+    elif not isinstance(units, Units):
+        units = Units(horizontal_m=float(units), vertical_m=float(units))
+    return path, where, crs, units
+
+
 def read_xyz(path, crs=None, units: Optional[Union[Units, float]] = None, *,
              allow_empty: bool = False, progress: Progress = None,
              cancelled: CancelCheck = None) -> PointCloud:
@@ -195,20 +218,7 @@ def read_xyz(path, crs=None, units: Optional[Union[Units, float]] = None, *,
     stay float64.  A file without points raises :class:`EmptyInputError`
     unless ``allow_empty``.
     """
-    path = Path(path)
-    where = str(path)
-    if not path.exists():
-        raise InputError(f"{where}: file not found")
-    if path.is_dir():
-        raise InputError(f"{where}: is a folder, not a text point cloud")
-    check(cancelled)
-    report(progress, 0.0, f"reading {path.name}")
-    crs = _as_crs(crs, where)
-    if units is None:
-        units = units_of(crs)
-        _require_linear(units, crs, where)
-    elif not isinstance(units, Units):
-        units = Units(horizontal_m=float(units), vertical_m=float(units))
+    path, where, crs, units = open_point_file(path, "text point cloud", crs, units, progress, cancelled)
 
     with open(path, "rb") as f:
         head = f.read(_HEAD_BYTES)
