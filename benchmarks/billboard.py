@@ -11,7 +11,7 @@ Data sets:
 
 * the bundled sample tile (resources/sample/sample.laz, airborne, RGB),
   segmented with Sylva's default ``segment_trees``;
-* a synthetic stand (core/synth "medium" mix, ``--size`` m square, scanned
+* a synthetic stand (testing/synth "medium" mix, ``--size`` m square, scanned
   at ``--density`` pulses/m2 with RGB), segmented by the simulator's truth;
   accuracy against the true crown base / crown diameter / stem count;
 * three dense single trees like the paper's (8k, 46k, 96k points: a stem
@@ -106,7 +106,7 @@ def sample_trees():
 
 
 def synthetic_trees(size, density):
-    from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+    from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
     stand = make_stand(StandSpec(width_m=size, depth_m=size, stems_per_ha=250, crown_overlap=0.5, seed=1))
     scan = simulate_scan(stand, ScanSpec(pulse_density=density, rgb=True, seed=1))

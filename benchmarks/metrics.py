@@ -114,7 +114,7 @@ def evaluate(xyz, height, labels, truth_tree, trees) -> dict:
     """Detection P/R/F1 and point accuracy of ``labels`` against a synthetic scan's truth.
 
     ``xyz`` CRS coordinates, ``height`` metres above ground, ``trees`` a list of
-    :class:`sylva.core.synth.TrueTree`."""
+    :class:`sylva.testing.synth.TrueTree`."""
     ids, x, y, h = segment_tops(xyz, height, labels)
     true_id = np.array([t.tree_id for t in trees], dtype=np.int64)
     det = match_trees(ids, x, y, h, true_id,

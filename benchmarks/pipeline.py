@@ -33,7 +33,7 @@ PULSES = 12.5   # ~20 points/m2 with multiple returns
 def make_tiles(folder: Path, size_m: float, splits, seed: int = 1, pulses: float = PULSES) -> dict:
     """Simulate a size_m x size_m stand and write it cut into n x n tiles for each n of ``splits``."""
     from sylva.core.io.las import write_las
-    from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+    from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
     stand = make_stand(StandSpec(width_m=size_m, depth_m=size_m, stems_per_ha=250, crown_overlap=0.5, seed=seed))
     scan = simulate_scan(stand, ScanSpec(pulse_density=pulses, seed=seed))

@@ -8,7 +8,7 @@
 Data sets, each tree reconstructed from its own points with
 ``reconstruct_tree(TreePoints(...), GreedySkeleton(...))``:
 
-* a synthetic stand (core/synth, "medium" mix of conifers, broadleaves and
+* a synthetic stand (testing/synth, "medium" mix of conifers, broadleaves and
   multi-stem trees, ``--size`` metres square) scanned at 10 and 20 pulses/m2;
   segmentation = the simulator's truth (``truth_tree``), ground_z = the
   true terrain height at the stem;
@@ -116,7 +116,7 @@ def summarise(name, rows, per_tree=False):
 
 
 def synthetic(density, seed, size):
-    from sylva.core import synth
+    from sylva.testing import synth
     stand_spec, scan_spec = synth.preset("medium", pulse_density=density, seed=seed)
     from dataclasses import replace
     stand_spec = replace(stand_spec, width_m=size, depth_m=size)
@@ -144,7 +144,7 @@ def sample_tile():
     """The bundled sample (resources/sample): its own truth segmentation and terrain."""
     import laspy
 
-    from sylva.core.synth import read_truth
+    from sylva.testing.synth import read_truth
 
     las = laspy.read(str(HERE.parents[1] / "resources" / "sample" / "sample.laz"))
     truth = {t.tree_id: t for t in read_truth(HERE.parents[1] / "resources" / "sample" / "sample_trees.csv")}
@@ -162,7 +162,7 @@ def model_errors(density, seed, size):
     """Whole models (core.forest.model_trees) of a synthetic stand against its truth."""
     from dataclasses import replace
 
-    from sylva.core import synth
+    from sylva.testing import synth
     from sylva.core.forest import model_trees
     from sylva.core.measure import tree_metrics
     from sylva.core.terrain import normalize

@@ -8,7 +8,7 @@
 Prints, for every method side by side:
 
 1. detection precision / recall / F1 and point-level accuracy against the
-   synthetic truth of core/synth, on open / medium / dense stands scanned at
+   synthetic truth of testing/synth, on open / medium / dense stands scanned at
    5, 20 and 50 pulses/m2 (matching rule in benchmarks/metrics.py: tops
    within 0.5 x the true crown radius, heights within 15 %, one-to-one by a
    Hungarian assignment; a segmented tree's top is its highest point);
@@ -60,9 +60,9 @@ def _methods():
 
 
 def _suite_scan(kind, structure, density, seed=0):
-    """(stand, scan) of the extended suite: kind conifer (core/synth presets), broadleaf or mixed
+    """(stand, scan) of the extended suite: kind conifer (testing/synth presets), broadleaf or mixed
     (sylva/testing/crowns.py)."""
-    from sylva.core import synth
+    from sylva.testing import synth
     from sylva.testing import crowns
 
     if kind == "conifer":
@@ -77,7 +77,7 @@ def _pipeline_labels(scan, tmp):
     """treeID of every point of the scan through sylva:pipeline's run_catalog (one tile, no models)."""
     import laspy
 
-    from sylva.core import synth
+    from sylva.testing import synth
     from sylva.core.catalog import run_catalog
     from sylva.core.pipeline import PipelineOptions
 
@@ -93,7 +93,7 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
 
     M = _metrics()
     print("1. Detection and point accuracy on the extended synthetic suite (100 m x 100 m; conifer: "
-          "core/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed)
+          "testing/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed)
     names = [n for n, _ in _methods()] + ["pipeline"]
     head = f"{'kind':9s} {'stand':6s} {'p/m2':>4s} {'points':>7s} {'trees':>5s} "
     for n in names:
@@ -237,7 +237,7 @@ def shipped_sample():
     from sylva.core.io.las import read_las
     from sylva.core.segment import segment_trees
     from sylva.core.segment.tile import segment_tile
-    from sylva.core.synth import read_truth
+    from sylva.testing.synth import read_truth
     from sylva.core.terrain import normalize
 
     laz = REPO / "resources" / "sample" / "sample.laz"
@@ -264,7 +264,7 @@ def shipped_sample():
 
 def _make_input(n_points: int, path: str) -> None:
     """Child: a medium synthetic stand at 20 pulses/m2 with ~n_points points, saved as .npz."""
-    from sylva.core import synth
+    from sylva.testing import synth
     from sylva.core.terrain import normalize
 
     per_m2 = 31.0   # points/m2 of the medium preset at 20 pulses/m2 (multiple returns)

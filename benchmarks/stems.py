@@ -2,7 +2,7 @@
 
     python benchmarks/stems.py
 
-* synthetic plots (tests/tls_synth.py: stems with known positions, DBH and heights, seen from five
+* synthetic plots (tests/sylva.testing.plots.py: stems with known positions, DBH and heights, seen from five
   scanner positions with occlusion by the other stems, crowns, rough sloping ground): stem detection
   recall and precision (a detected stem matches a true one within 30 cm), DBH RMSE, position error,
   share of each matched tree's points labelled with its ID, time;
@@ -11,19 +11,16 @@
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from sylva.core.cloud import PointCloud
+from sylva.core.segment.stems import StemSegmentation
+from sylva.testing.plots import plot_scan
+
 HERE = Path(__file__).resolve()
-sys.path.insert(0, str(HERE.parents[1] / "tests"))
-
-from tls_synth import plot_scan  # noqa: E402
-
-from sylva.core.cloud import PointCloud  # noqa: E402
-from sylva.core.segment.stems import StemSegmentation  # noqa: E402
 
 TLS = HERE.parents[1].parent / "shared" / "data" / "tls"
 

@@ -6,7 +6,7 @@ Prints
 1. ground classification, SMRF vs CSF (Sylva's vectorised one and, when the
    ``cloth-simulation-filter`` package is installed, its reference C++ one):
    precision and recall of ground points, RMSE of the 1 m DTM against the true
-   terrain, time; on synthetic medium stands (core.synth) on 0, 15, 30 degree slopes;
+   terrain, time; on synthetic medium stands (testing.synth) on 0, 15, 30 degree slopes;
 2. normalisation throughput (points/s) for TIN and kNN-IDW at about 1 M points;
 3. CHM time, plain vs pit-free, on the same cloud;
 4. tree-top precision / recall / F1 for FixedWindow 2, 3, 4, 5 m and
@@ -26,7 +26,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from sylva.core import synth
+from sylva.testing import synth
 from sylva.core.terrain import (
     CSF, SMRF, canopy_height_model, classify_ground, digital_terrain_model, height_above_ground,
     normalize,

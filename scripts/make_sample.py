@@ -19,10 +19,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 try:
-    from sylva.core.synth import CROWN, GROUND, STEM, ScanSpec, StandSpec, make_stand, simulate_scan, write_scan
+    from sylva.testing.synth import CROWN, GROUND, STEM, ScanSpec, StandSpec, make_stand, simulate_scan, write_scan
 except ImportError:  # not installed: the repository root is the package
     sys.path.insert(0, str(ROOT.parent))
-    from sylva.core.synth import CROWN, GROUND, STEM, ScanSpec, StandSpec, make_stand, simulate_scan, write_scan
+    from sylva.testing.synth import CROWN, GROUND, STEM, ScanSpec, StandSpec, make_stand, simulate_scan, write_scan
 
 STAND = StandSpec(
     width_m=100.0, depth_m=100.0, stems_per_ha=250, crown_overlap=0.5,

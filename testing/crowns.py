@@ -1,6 +1,6 @@
 """Stands of crowns of every form: broadleaf crowns made of leaf clumps, mixed stands, suppressed trees.
 
-:mod:`sylva.core.synth` draws a broadleaf crown as one smooth ellipsoid and a
+:mod:`sylva.testing.synth` draws a broadleaf crown as one smooth ellipsoid and a
 conifer as one cone.  Real broadleaf crowns are neither smooth nor single: the
 foliage sits in clumps (shoots, branch systems) concentrated in the outer shell
 of the crown, with gaps between branch systems, and an old or open-grown tree
@@ -63,7 +63,7 @@ from typing import Tuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core import synth
+from . import synth
 from ..core.errors import InputError
 
 __all__ = ["KINDS", "STRUCTURES", "FORMS", "suite_stand", "suite_preset", "crown_forms"]

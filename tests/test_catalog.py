@@ -11,7 +11,7 @@ from sylva.core.errors import InputError
 from sylva.core.io.gpkg import read_gpkg
 from sylva.core.io.las import read_las, write_las
 from sylva.core.pipeline import PipelineOptions, grid_keys, tree_ids
-from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
 FAST = PipelineOptions(reconstruct=False)
 

@@ -11,7 +11,7 @@ from sylva.core.reconstruct.colonize import (
     interior_fraction, pca_weights,
 )
 from sylva.core.reconstruct.model import Reconstruction, Skeleton, TreePoints
-from sylva.core.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 
 
 # --------------------------------------------------------------------------- helpers

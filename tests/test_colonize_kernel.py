@@ -22,7 +22,7 @@ from sylva.core.reconstruct import colonize
 from sylva.core.reconstruct.colonize import (_DOWN, _K_BUDS, _STALL_LIMIT, _UP, GuidedGrowth, _Nodes,
                                              _unit, influence_distance)
 from sylva.core.reconstruct.model import TreePoints
-from sylva.core.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 
 
 class NumpyGrowth(GuidedGrowth):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from sylva.core import synth
+from sylva.testing import synth
 from sylva.core.errors import InputError
 from sylva.testing import crowns
 

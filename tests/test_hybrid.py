@@ -9,7 +9,7 @@ from sylva.core.reconstruct.colonize import GuidedGrowth
 from sylva.core.reconstruct.hybrid import Hybrid
 from sylva.core.reconstruct.model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
 from sylva.core.reconstruct.skeleton import GreedySkeleton
-from sylva.core.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 
 
 class StubPrimary:

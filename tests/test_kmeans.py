@@ -194,7 +194,7 @@ def test_two_separate_pieces_are_bridged():
 
 
 def test_dense_rule_on_synthetic_airborne_trees():
-    from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+    from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
     stand = make_stand(StandSpec(width_m=30, depth_m=30, stems_per_ha=200, seed=1))
     scan = simulate_scan(stand, ScanSpec(pulse_density=100, seed=1))
     ids = np.unique(scan.truth_tree[scan.truth_tree > 0])

@@ -4,7 +4,7 @@ import pytest
 
 from sylva.core.cloud import PointCloud
 from sylva.core.noise import IsolatedVoxels, isolated_points, noise_mask
-from sylva.core.synth import NOISE, ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import NOISE, ScanSpec, StandSpec, make_stand, simulate_scan
 
 
 def test_isolated_voxels_catch_birds_and_keep_the_canopy():

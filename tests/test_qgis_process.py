@@ -29,7 +29,7 @@ def test_run_treetops_finds_the_sample_trees(sample_laz, tmp_path, qgis_app):
     """One point per synthetic tree top: F1 >= 0.85 against the sample's truth (measured: 0.91)."""
     from qgis.core import QgsVectorLayer
 
-    from sylva.core.synth import read_truth
+    from sylva.testing.synth import read_truth
 
     target = tmp_path / "tops.gpkg"
     out = qgis_process("run", "sylva:treetops", f"--INPUT={sample_laz}", "--WINDOW=1", f"--OUTPUT={target}")

@@ -11,7 +11,7 @@ import pytest
 from sylva.core.catalog import run_catalog
 from sylva.core.pipeline import PipelineOptions
 from sylva.core.raster import Raster, aligned_raster, paste, write_geotiff, write_vrt
-from sylva.core.synth import ScanSpec, StandSpec, make_stand, simulate_scan
+from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
 from .test_catalog import cut
 

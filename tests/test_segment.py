@@ -262,7 +262,7 @@ def test_flat_chm_gives_zero_trees():
 # --------------------------------------------------------------------------- synthetic stand
 
 def test_synthetic_stand_accuracy_and_ncut_not_worse_than_baseline():
-    synth = pytest.importorskip("sylva.core.synth")
+    synth = pytest.importorskip("sylva.testing.synth")
     stand = synth.make_stand(synth.StandSpec(width_m=50, depth_m=50, stems_per_ha=200,
                                              crown_overlap=0.3, seed=4))
     scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=10.0, seed=4))

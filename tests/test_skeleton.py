@@ -305,11 +305,11 @@ def test_pruning_removes_close_directions():
     assert res.parent.tolist() == [-1, 0, 1, 1]
 
 
-# --- synthetic stands (core/synth) ------------------------------------------------------
+# --- synthetic stands (testing/synth) ------------------------------------------------------
 
 @pytest.fixture(scope="module")
 def synth_trees():
-    synth = pytest.importorskip("sylva.core.synth")
+    synth = pytest.importorskip("sylva.testing.synth")
     stand = synth.make_stand(synth.StandSpec(width_m=40.0, depth_m=40.0, seed=3))
     scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=20.0, seed=3))
     origin = np.array([*stand.spec.origin, 0.0])

@@ -363,7 +363,7 @@ def trees():
         if i == 1:                                    # a stem seen by a few pulses (Eq. 3 trunk)
             xyz = np.r_[xyz, np.c_[np.full(12, 7.05), np.zeros(12), np.linspace(0.8, 4.5, 12)]]
         out.append((f"cone {i}", xyz, 0.0))
-    synth = pytest.importorskip("sylva.core.synth")
+    synth = pytest.importorskip("sylva.testing.synth")
     stand = synth.make_stand(synth.StandSpec(width_m=30.0, depth_m=30.0, seed=5))
     scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=15.0, seed=5))
     origin = np.array([*stand.spec.origin, 0.0])

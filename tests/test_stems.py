@@ -8,7 +8,7 @@ from sylva.core.cloud import PointCloud
 from sylva.core.segment import segment_trees
 from sylva.core.segment.stems import StemSegmentation, ground_under_canopy
 
-from tls_synth import plot_scan
+from sylva.testing.plots import plot_scan
 
 
 def _match(stems_xy, truth, tol=0.3):

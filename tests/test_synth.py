@@ -1,12 +1,12 @@
-"""Synthetic stands and the airborne scan simulator (sylva.core.synth)."""
+"""Synthetic stands and the airborne scan simulator (sylva.testing.synth)."""
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sylva.core import synth
+from sylva.testing import synth
 from sylva.core.errors import Cancelled, CRSError, InputError
-from sylva.core.synth import (CROWN, GROUND, NOISE, STEM, ScanSpec, StandSpec, make_stand,
+from sylva.testing.synth import (CROWN, GROUND, NOISE, STEM, ScanSpec, StandSpec, make_stand,
                               preset, read_truth, simulate_scan, write_scan)
 
 SAMPLE = Path(__file__).resolve().parents[1] / "resources" / "sample"

@@ -334,7 +334,7 @@ def test_progressive_opening_is_the_reference():
 
 
 def test_smrf_classification_is_unchanged(monkeypatch):
-    from sylva.core import synth
+    from sylva.testing import synth
 
     stand = synth.make_stand(synth.StandSpec(width_m=60, depth_m=60, slope_deg=15, seed=2))
     scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=10, seed=2))

@@ -138,7 +138,7 @@ def test_deterministic():
     assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.tree_id, b.tree_id)
 
 
-# ---------------------------------------------------------------- synthetic stands (core.synth)
+# ---------------------------------------------------------------- synthetic stands (testing.synth)
 
 def match_tops(tops_xy, tops_h, trees_xy, trees_h, crowns_r):
     """Greedy one-to-one matching, tallest true tree first: a detected top matches when within
@@ -157,7 +157,7 @@ def match_tops(tops_xy, tops_h, trees_xy, trees_h, crowns_r):
 
 
 def test_f1_on_open_synthetic_stand():
-    synth = pytest.importorskip("sylva.core.synth")
+    synth = pytest.importorskip("sylva.testing.synth")
     from sylva.core.terrain import normalize
 
     stand_spec, scan_spec = synth.preset("open", pulse_density=10.0, seed=0)

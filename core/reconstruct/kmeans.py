@@ -1232,12 +1232,12 @@ def _skeleton_from(st: BranchStructure, verts, vrad) -> Skeleton:
 
 #: Median distance (m) from a point to its 8th nearest neighbour at or under
 #: which a tree counts as densely sampled.  Airborne scans of 20 / 100 / 400
-#: pulses/m² (core.synth) put it at 0.57–0.81 / 0.27–0.41 / 0.14–0.23 m; the
+#: pulses/m² (testing.synth) put it at 0.57–0.81 / 0.27–0.41 / 0.14–0.23 m; the
 #: TLS trees of ../shared/data/tls at 0.03–0.19 m.
 DENSE_SPACING_M = 0.25
 #: Share of the points within ``DENSE_LOW_M`` above the tree's lowest point at
 #: or above which the lower stem is seen, as from the ground.  Airborne trees
-#: of core.synth (20–400 pulses/m²): at most 2.2 %; the TLS trees: 3.6–25 %.
+#: of testing.synth (20–400 pulses/m²): at most 2.2 %; the TLS trees: 3.6–25 %.
 DENSE_LOW_SHARE = 0.03
 DENSE_LOW_M = 2.0
 #: A dense scan also needs this many points (too few points carry no branches).

@@ -85,7 +85,7 @@ Steps
    :func:`crown_radius_m`) and rises less than ``merge_prominence`` x its
    height above their saddle (the prominence of the EBImage/lidR watershed's
    ``tol``, relative to height).  Measured on 2,530 pairs of the extended
-   suite (``sylva/testing/crowns.py``) and core/synth's dense conifers: pairs
+   suite (``sylva/testing/crowns.py``) and testing/synth's dense conifers: pairs
    of one tree lie at 0.06-0.17 x the higher top's height (10th-90th
    percentile), pairs of two trees at 0.13-0.33; reach 0.7 and prominence 0.15
    merge 1,599 of 2,022 same-tree pairs and 123 of 508 two-tree pairs (the

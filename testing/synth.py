@@ -64,10 +64,10 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .cloud import PointCloud
-from .errors import CRSError, InputError
-from .io.las import write_las
-from .progress import check, report, scaled
+from ..core.cloud import PointCloud
+from ..core.errors import CRSError, InputError
+from ..core.io.las import write_las
+from ..core.progress import check, report, scaled
 
 __all__ = [
     "GROUND", "STEM", "CROWN", "NOISE", "KIND_NAMES", "SPECIES",
