@@ -54,33 +54,14 @@ from typing import Any, Optional, Tuple
 
 import numpy as np
 
-from .cloud import PointCloud
+from .cloud import ANCHOR_GRID_M, AnchoredCloud, PointCloud
 from .errors import EmptyInputError, InputError, SylvaError
 from .segment import NormalizedCut
 
-#: Local frames are anchored on multiples of this many metres (a common multiple of
-#: 0.7 m ncut voxels, 0.5 m CHM cells, 5 m noise voxels, 0.2 m thinning voxels, 1 m cells).
-ANCHOR_GRID_M = 70.0
 #: Tree tops are snapped to this grid (metres) before hashing them into an ID.
 ID_GRID_M = 0.01
 
 _MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-@dataclass(eq=False)
-class AnchoredCloud(PointCloud):
-    """A :class:`PointCloud` whose local frame starts at ``anchor`` (CRS units), not at its minimum.
-
-    ``dataclasses.replace`` (used by ``subset``/``with_attrs``) keeps the anchor.
-    """
-
-    anchor: Any = None
-
-    @property
-    def origin(self) -> np.ndarray:  # noqa: D102
-        if self.anchor is None:
-            return super().origin
-        return np.asarray(self.anchor, dtype=np.float64)
 
 
 @dataclass(frozen=True)

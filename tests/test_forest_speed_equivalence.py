@@ -52,7 +52,7 @@ from sylva.core.qsm import cylinders_from_skeleton, measure_qsm
 from sylva.core.reconstruct import TreePoints, is_dense_scan
 from sylva.core.reconstruct.model import Reconstruction, Skeleton
 from sylva.core.table import VectorTable
-from sylva.core.textures import _shape_name, leaf_aspect
+from sylva.core.textures import leaf_shape_name, leaf_aspect
 
 CRS = "EPSG:32632"
 ORIGIN = np.array([500100.0, 5400200.0, 0.0])
@@ -1106,7 +1106,7 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
     per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
     length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
     width_m = method.cluster_width_m if needles else method.leaf_width_m
-    shape = _shape_name(method.shape)
+    shape = leaf_shape_name(method.shape)
     if width_m is None:
         width_m = length_m * leaf_aspect(shape)
     ksegs = int(method.tip_segments)
