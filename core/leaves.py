@@ -38,7 +38,7 @@ import numpy as np
 from .errors import InputError
 from .geometry import _forest, _norm3, branches
 from .jit import njit
-from .reconstruct.model import Skeleton
+from .skeleton import Skeleton
 from .textures import leaf_aspect, leaf_texture, leaf_shape_name
 
 __all__ = ["PATTERNS", "GOLDEN_ANGLE_DEG", "phyllotaxis_azimuths", "LeafCards", "NeedleClusters",

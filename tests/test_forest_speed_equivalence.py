@@ -50,7 +50,8 @@ from sylva.core.measure import estimate_dbh
 from sylva.core.progress import check, report
 from sylva.core.qsm import cylinders_from_skeleton, measure_qsm
 from sylva.core.reconstruct import TreePoints, is_dense_scan
-from sylva.core.reconstruct.model import Reconstruction, Skeleton
+from sylva.core.reconstruct.model import Reconstruction
+from sylva.core.skeleton import Skeleton
 from sylva.core.table import VectorTable
 from sylva.core.textures import leaf_shape_name, leaf_aspect
 
