@@ -16,10 +16,8 @@ outputs differ from the golden file; ``--write`` rewrites it, for a change of th
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import sqlite3
-import struct
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -33,7 +31,7 @@ from sylva.core import leaves as LV
 from sylva.core.cloud import PointCloud
 from sylva.core.export import ExportFrame, TreeModel, write_glb, write_tileset
 from sylva.core.export.georef import Georef
-from sylva.core.export.gltf import accessor_array, glb_bytes, read_glb
+from sylva.core.export.gltf import glb_bytes
 from sylva.core.export.tiles3d import coarse_error
 from sylva.core.geometry import LevelOfDetail, _forest, _lod, _radii_or_default
 from sylva.core.io.gpkg import write_gpkg
@@ -41,6 +39,9 @@ from sylva.core.qsm import cylinders_from_skeleton, measure_qsm
 from sylva.core.reconstruct.model import Reconstruction
 from sylva.core.skeleton import Skeleton
 from sylva.core.table import VectorTable
+
+from fingerprints import (fingerprint, glb_fingerprint, json_fingerprint, rows_fingerprint, same_outputs,
+                          wkb_fingerprint)
 
 CRS = "EPSG:32632"
 ORIGIN = np.array([500100.0, 5400200.0, 0.0])
@@ -104,84 +105,6 @@ def tiny_skeletons():
 
 # --------------------------------------------------------------------------- digests
 
-def _floats(a) -> list:
-    """A float array as [sum, sum of |x|, sum weighted by fixed random weights (a reordering shows), NaNs]."""
-    a = np.asarray(a, dtype=np.float64).ravel()
-    nan = np.isnan(a)
-    a = np.where(nan, 0.0, a)
-    w = np.random.default_rng(len(a)).uniform(0.5, 1.5, len(a))
-    return [float(a.sum()), float(np.abs(a).sum()), float(a @ w), int(nan.sum())]
-
-
-def _h(*arrays) -> dict:
-    """What outputs are made of: shapes, integers, booleans and texts exactly (a hash), floats by
-    :func:`_floats`, which :func:`same_outputs` compares within a tolerance (the last bit of a float
-    may differ from one CPU to another: numba compiles for the host)."""
-    m, floats = hashlib.sha256(), []
-    for a in arrays:
-        if isinstance(a, dict):                      # an earlier fingerprint
-            m.update(a["exact"].encode())
-            floats.extend(a["floats"])
-            continue
-        a = np.asarray(a)
-        m.update(str(a.shape).encode())
-        if a.dtype.kind == "f":
-            floats.append(_floats(a))
-        elif a.dtype.kind == "O":
-            m.update("|".join(str(x) for x in a.ravel()).encode())
-        else:
-            m.update(np.ascontiguousarray(a.astype(np.int64)).tobytes())
-    return {"exact": m.hexdigest()[:16], "floats": floats}
-
-
-def _json_parts(obj, floats: list):
-    """``obj`` with its floats taken out (into ``floats``), for :func:`_h`."""
-    if isinstance(obj, float):
-        floats.append(obj)
-        return "f"
-    if isinstance(obj, dict):
-        return {k: _json_parts(v, floats) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_json_parts(v, floats) for v in obj]
-    return obj
-
-
-def _json_h(doc) -> dict:
-    floats = []
-    structure = json.dumps(_json_parts(doc, floats), sort_keys=True)
-    return _h(np.array([structure], dtype=object), np.array(floats, dtype=np.float64))
-
-
-#: Tolerance of the float sums, relative to the sum of |x| (+ 1): a last-bit difference passes, a
-#: centimetre's move of one vertex among a million coordinates does not.
-RTOL = 1e-9
-
-
-def same_outputs(got: dict, want: dict) -> list:
-    """Names of the outputs whose fingerprints differ (exactly, or floats beyond :data:`RTOL`)."""
-    changed = []
-    for name in sorted(set(got) | set(want)):
-        a, b = got.get(name), want.get(name)
-        ok = (a is not None and b is not None and a["exact"] == b["exact"] and len(a["floats"]) == len(b["floats"])
-              and all(x[3] == y[3] and all(abs(u - v) <= RTOL * (y[1] + 1.0) or u == v for u, v in zip(x[:3], y[:3]))
-                      for x, y in zip(a["floats"], b["floats"])))
-        if not ok:
-            changed.append(name)
-    return changed
-
-
-def glb_digest(data: bytes) -> dict:
-    """The content of a GLB: its JSON and every accessor (see :func:`_h`), its images' bytes exactly."""
-    doc, binary = read_glb(data)
-    parts = [_json_h(doc)]
-    for k in range(len(doc.get("accessors", []))):
-        parts.append(_h(accessor_array(doc, binary, k)))
-    for im in doc.get("images", []):
-        v = doc["bufferViews"][im["bufferView"]]
-        parts.append(_h(np.frombuffer(binary[v["byteOffset"]:v["byteOffset"] + v["byteLength"]], dtype=np.uint8)))
-    return _h(*parts)
-
-
 def _fake_reconstruct(skeletons):
     def reconstruct(tree_points, method):
         sk = skeletons[tree_points.tree_id]
@@ -233,52 +156,6 @@ def model_forest(monkeypatch=None, lod: int = 1):
     return cloud, trees
 
 
-def _wkb_digest(blobs) -> dict:
-    """Fingerprint of ISO WKB (multi)linestrings/points: their structure exactly, coordinates as floats."""
-    ints, coords = [], []
-    for blob in blobs:
-        blob = bytes(blob)
-        pos = 0
-
-        def geom(pos):
-            order, kind, count = struct.unpack_from("<BII", blob, pos)
-            ints.extend([order, kind, count])
-            pos += 9
-            dims = {0: 2, 1: 3, 2: 3, 3: 4}[kind // 1000]                 # ISO: +1000 Z, +2000 M
-            if kind % 1000 == 1:                                   # a point: no count
-                coords.extend(struct.unpack_from(f"<{dims}d", blob, pos - 4))
-                return pos - 4 + 8 * dims
-            if kind % 1000 == 2:                                   # a linestring
-                coords.extend(struct.unpack_from(f"<{count * dims}d", blob, pos))
-                return pos + 8 * count * dims
-            for _ in range(count):                                 # a multi-geometry
-                pos = geom(pos)
-            return pos
-
-        assert geom(pos) == len(blob)
-    return _h(np.array(ints, dtype=np.int64), np.array(coords, dtype=np.float64))
-
-
-def _row_h(rows) -> dict:
-    """GeoPackage rows: texts and integers exactly, floats (values, envelopes, coordinates) as floats."""
-    texts, floats = [], []
-    for row in rows:
-        for v in row:
-            if isinstance(v, bytes) and v[:2] == b"GP":
-                env = {0: 0, 1: 4, 2: 6, 3: 6, 4: 8}[(v[3] >> 1) & 7]
-                floats.extend(np.frombuffer(v[8:8 + 8 * env], dtype="<f8").tolist())
-                wkb = _wkb_digest([v[8 + 8 * env:]])
-                texts.append(f"GP{v[2:4].hex()}{v[4:8].hex()}{wkb['exact']}")
-                floats.extend(x for f in wkb["floats"] for x in f[:3])
-            elif isinstance(v, float):
-                texts.append("f")
-                floats.append(v)
-            else:
-                texts.append(repr(v))
-        texts.append("\n")
-    return _h(np.array(texts, dtype=object), np.array(floats, dtype=np.float64))
-
-
 def compute_digests(tmp_dir, monkeypatch=None) -> dict:
     """Fingerprints (:func:`_h`) of every output of a small synthetic forest, by name."""
     from pathlib import Path
@@ -288,41 +165,41 @@ def compute_digests(tmp_dir, monkeypatch=None) -> dict:
     sks = [synthetic_skeleton(s) for s in range(4)]
     for s, sk in enumerate(sks):
         bs = G.branches(sk, sk.radius)
-        out[f"branches_{s}"] = _h(np.concatenate(bs.chains), [len(c) for c in bs.chains], bs.parent, bs.attach,
+        out[f"branches_{s}"] = fingerprint(np.concatenate(bs.chains), [len(c) for c in bs.chains], bs.parent, bs.attach,
                                   bs.node_branch, bs.order, bs.continuation)
         bs0 = G.branches(sk)
-        out[f"branches_noradii_{s}"] = _h(np.concatenate(bs0.chains), bs0.continuation)
+        out[f"branches_noradii_{s}"] = fingerprint(np.concatenate(bs0.chains), bs0.continuation)
         for lod in (0, 1, 2):
             mesh = G.tree_mesh(sk, lod)
-            out[f"mesh_{s}_lod{lod}"] = _h(mesh.vertices, mesh.faces, mesh.metadata["face_branch"])
+            out[f"mesh_{s}_lod{lod}"] = fingerprint(mesh.vertices, mesh.faces, mesh.metadata["face_branch"])
         for name, method in (("cards", LV.LeafCards()), ("needles", LV.NeedleClusters()),
                              ("distichy", LV.LeafCards(pattern="distichy", leaves_per_tip=4)),
                              ("decussation", LV.LeafCards(pattern="decussation", face_up=0.0))):
             lm = LV.grow_leaves(sk, method, seed=s)
-            out[f"leaves_{s}_{name}"] = _h(lm.vertices, lm.faces, lm.uvs, lm.tip, lm.base, lm.axis, lm.twig,
+            out[f"leaves_{s}_{name}"] = fingerprint(lm.vertices, lm.faces, lm.uvs, lm.tip, lm.base, lm.axis, lm.twig,
                                            lm.azimuth_deg, lm.node)
         simple = G.simplify_skeleton(sk, 0.05)
-        out[f"simplify_{s}"] = _h(simple.nodes, simple.parent, simple.radius)
+        out[f"simplify_{s}"] = fingerprint(simple.nodes, simple.parent, simple.radius)
         cyl, bpar = cylinders_from_skeleton(sk)
         q = measure_qsm(cyl, bpar, sk.nodes, base_z=0.0, tree_id=s)
-        out[f"qsm_{s}"] = _h(*[cyl[k] for k in sorted(cyl)], *[q.branches[k] for k in sorted(q.branches)],
+        out[f"qsm_{s}"] = fingerprint(*[cyl[k] for k in sorted(cyl)], *[q.branches[k] for k in sorted(q.branches)],
                              [q.height_m, q.trunk_volume_m3, q.total_volume_m3, q.dbh_m])
-        out[f"measures_{s}"] = _h([G.wood_volume(sk), G.branch_count(sk), G.total_branch_length(sk)])
+        out[f"measures_{s}"] = fingerprint([G.wood_volume(sk), G.branch_count(sk), G.total_branch_length(sk)])
     # the whole modelling step (reconstruction replaced by the synthetic skeletons)
     cloud, trees = model_forest(monkeypatch)
     for t in trees:
         lv = t.leaves
-        out[f"forest_tree_{t.tree_id}"] = _h(t.skeleton.nodes, t.skeleton.parent, t.skeleton.radius, t.wood.vertices,
+        out[f"forest_tree_{t.tree_id}"] = fingerprint(t.skeleton.nodes, t.skeleton.parent, t.skeleton.radius, t.wood.vertices,
                                              t.wood.faces, t.wood.metadata["face_branch"], lv.vertices, lv.faces,
                                              lv.uvs, lv.tip, lv.azimuth_deg, t.base_local)
         rec = {k: v for k, v in t.record.items() if k not in ("dbh", "dbh_source")}
-        out[f"forest_record_{t.tree_id}"] = _h(np.array([k if isinstance(v, float) else f"{k}={v}"
+        out[f"forest_record_{t.tree_id}"] = fingerprint(np.array([k if isinstance(v, float) else f"{k}={v}"
                                                          for k, v in sorted(rec.items())], dtype=object),
                                                np.array([v for _, v in sorted(rec.items()) if isinstance(v, float)]))
     skel = F.skeleton_table(trees, cloud)
-    out["skeleton_table"] = _h(_wkb_digest(skel.geometries), skel.columns["n_chains"])
+    out["skeleton_table"] = fingerprint(wkb_fingerprint(skel.geometries), skel.columns["n_chains"])
     cyl_t, br_t, tr_t = F.qsm_tables(trees, cloud)
-    out["qsm_tables"] = _h(*[np.asarray(v) for tb in (cyl_t, br_t) for v in tb.columns.values()],
+    out["qsm_tables"] = fingerprint(*[np.asarray(v) for tb in (cyl_t, br_t) for v in tb.columns.values()],
                            tr_t.columns["n_cylinders"], tr_t.columns["total_volume_m3"])
     # exports
     frame = ExportFrame(CRS)
@@ -330,14 +207,14 @@ def compute_digests(tmp_dir, monkeypatch=None) -> dict:
                         {"height": float(t.record["total_branch_length"]), "kind": t.record["leaves"]})
               for t in trees]
     georef = Georef(frame, ORIGIN + [10.0, 10.0, 0.0])
-    out["glb"] = glb_digest(glb_bytes(models, georef))
-    out["glb_coarse_noleaves"] = glb_digest(glb_bytes(models, georef, lod="coarsest", leaves=False))
-    out["coarse_error"] = _h([coarse_error(m) for m in models])
+    out["glb"] = glb_fingerprint(glb_bytes(models, georef))
+    out["glb_coarse_noleaves"] = glb_fingerprint(glb_bytes(models, georef, lod="coarsest", leaves=False))
+    out["coarse_error"] = fingerprint([coarse_error(m) for m in models])
     write_tileset(models, tmp_dir / "ts", frame, tile_size_m=12.0)
     ts = json.loads((tmp_dir / "ts" / "tileset.json").read_text())
-    out["tileset_json"] = _json_h(ts)
+    out["tileset_json"] = json_fingerprint(ts)
     for f in sorted((tmp_dir / "ts" / "content").glob("*.glb")):
-        out[f"tileset_{f.stem}"] = glb_digest(f.read_bytes())
+        out[f"tileset_{f.stem}"] = glb_fingerprint(f.read_bytes())
     # GeoPackage rows
     pts = np.flatnonzero(np.arange(len(cloud)) % 7 == 0)
     import shapely
@@ -352,7 +229,7 @@ def compute_digests(tmp_dir, monkeypatch=None) -> dict:
     rows.extend(con.execute("SELECT table_name, data_type, identifier, min_x, min_y, max_x, "
                             "max_y, srs_id FROM gpkg_contents ORDER BY table_name"))
     con.close()
-    out["gpkg_rows"] = _row_h(rows)
+    out["gpkg_rows"] = rows_fingerprint(rows)
     return out
 
 
