@@ -39,7 +39,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     options = PipelineOptions(
         buffer_m=float(args["BUFFER_M"]), segmentation=segmentation_method(args),
         reconstruct=bool(args["RECONSTRUCT"]), lod=int(args["LOD"]), leaves=args["LEAVES"],
-        billboards=bool(args["BILLBOARDS"]),
+        billboards=bool(args["BILLBOARDS"]), chunk_size_m=float(args["CHUNK_SIZE_M"]),
         crs=args.get("CRS") or None)
     scheduler = (args.get("SCHEDULER") or "").strip() or None
     report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
@@ -86,6 +86,12 @@ PIPELINE = Algorithm(
         Param("BUFFER_M", NUMBER, "Neighbour buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
               help="Width of the ring of neighbouring points read around each tile; wider than the "
                    "widest crown."),
+        Param("CHUNK_SIZE_M", NUMBER, "Chunk size (m)", default=0.0, minimum=0.0, maximum=100000.0, advanced=True,
+              help="Cut files wider than this into square chunks of this size, each processed as a tile with "
+                   "its buffer (as lidR's opt_chunk_size): a large merged block or a dense flight in one file "
+                   "then needs the memory of one chunk and keeps every worker busy. The trees and their IDs "
+                   "are the same; the segmented points are written per chunk (tiles/<file>_<i>_<j>.laz). "
+                   "0: one tile per file. About 250 m suits 20 points/m²."),
         Param("METHOD", ENUM, "Segmentation method", options=tuple(SEGMENTATION), default="ncut",
               labels=("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)"),
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "

@@ -3,6 +3,7 @@
     python benchmarks/pipeline.py                 # equivalence, workers, memory (~10 min)
     python benchmarks/pipeline.py --km2           # also 1 km2 at 20 pts/m2 (~20 M points)
     python benchmarks/pipeline.py --parts equivalence,workers
+    python benchmarks/pipeline.py --parts chunks  # one 5 / 10 M-point file whole vs in chunks
 
 Prints what it measures; targets (issue 6): identical tree count and IDs and
 >= 99.5 % same labels for 3x3 / 6x6 tiles vs one tile; speed-up >= 1.8 with 2
@@ -55,13 +56,13 @@ def make_tiles(folder: Path, size_m: float, splits, seed: int = 1, pulses: float
     return {"points": len(cloud), "trees": len(stand.trees), "folders": out}
 
 
-def run_in_fresh_process(src, out, workers=1, dask_workers=0, reconstruct=False) -> dict:
+def run_in_fresh_process(src, out, workers=1, dask_workers=0, reconstruct=False, chunk_size_m=0.0) -> dict:
     """Run the catalog in a new Python; returns the report as a dict."""
     code = (
         "import json, sys\n"
         "from sylva.core.catalog import run_catalog\n"
         "from sylva.core.pipeline import PipelineOptions\n"
-        f"opts = PipelineOptions(reconstruct={reconstruct!r})\n"
+        f"opts = PipelineOptions(reconstruct={reconstruct!r}, chunk_size_m={float(chunk_size_m)!r})\n"
         f"if {dask_workers}:\n"
         "    from distributed import Client, LocalCluster\n"
         f"    cluster = LocalCluster(n_workers={dask_workers}, threads_per_worker=1, processes=True,\n"
@@ -166,6 +167,24 @@ def memory(work: Path, tile_m=50.0):
         shutil.rmtree(d, ignore_errors=True)
 
 
+def chunks(work: Path, sizes=(500.0, 710.0), chunk_m=250.0):
+    """One file of 5 and 10 M points: whole in one worker, then cut into chunks of ``chunk_m`` (CHUNK_SIZE_M)
+    with 2 workers: the same trees and IDs, peak memory per worker (ru_maxrss) side by side."""
+    print(f"\n== One large file, whole vs cut into {chunk_m:.0f} m chunks (~20 pts/m2, no reconstruction)")
+    print(f"   {'points':>11} {'run':>22} {'tiles':>6} {'trees':>7} {'same IDs':>9} {'time s':>7} {'peak MB/worker':>15}")
+    for size in sizes:
+        d = work / f"chunks_{size:.0f}"
+        folder = make_tiles(d, size, (1,))["folders"][1]
+        whole = run_in_fresh_process(folder, d / "whole", workers=1)
+        cut = run_in_fresh_process(folder, d / "cut", workers=2, chunk_size_m=chunk_m)
+        same = np.array_equal(tree_ids_of(d / "whole"), tree_ids_of(d / "cut"))
+        for label, rep in (("whole, 1 worker", whole), (f"{chunk_m:.0f} m chunks, 2 workers", cut)):
+            peaks = sorted(rep["peak_rss_mb_per_worker"].values())
+            print(f"   {rep['points']:11,} {label:>22} {len(rep['tiles']):6d} {rep['trees']:7,} {str(same):>9} "
+                  f"{rep['seconds']:7.1f} {', '.join(f'{p:.0f}' for p in peaks):>15}")
+        shutil.rmtree(d, ignore_errors=True)
+
+
 def km2(work: Path):
     print("\n== 1 km2 at ~20 pts/m2 (100 tiles of 100 m), 2 workers, the whole pipeline")
     folder = work / "km2" / "tiles_10x10"
@@ -200,7 +219,7 @@ def main():
     parts = [p for p in args.parts.split(",") if p] + (["km2"] if args.km2 else [])
     try:
         for part in parts:
-            {"equivalence": equivalence, "workers": workers, "memory": memory, "km2": km2}[part](work)
+            {"equivalence": equivalence, "workers": workers, "memory": memory, "chunks": chunks, "km2": km2}[part](work)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)

@@ -47,6 +47,7 @@ from .engine import apply
 from .errors import Cancelled, InputError, OutputError, ParameterError, SylvaError, disk_error
 from .export.tiles3d import write_root_tileset
 from .io.gpkg_merge import OrderedMerge
+from .io.chunks import chunk_tiles
 from .io.tiles import Tile, file_checksum, list_tiles
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile
 from .progress import CancelCheck, Progress, check, report
@@ -224,7 +225,7 @@ def check_options(options: PipelineOptions) -> None:
     """Refuse NaN, infinite or negative run parameters before any tile is read (:class:`ParameterError`)."""
     import math
 
-    for name in ("buffer_m", "ground_cell_m", "crown_base_gap_m"):
+    for name in ("buffer_m", "ground_cell_m", "crown_base_gap_m", "chunk_size_m"):
         value = getattr(options, name)
         try:
             ok = math.isfinite(float(value)) and float(value) >= 0
@@ -353,6 +354,9 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
     tiles, failures = list_tiles(inputs, crs=options.crs)
     if not tiles:
         raise InputError("no readable tile: " + "; ".join(f["reason"] for f in failures))
+    if options.chunk_size_m:
+        report(progress, 0.0, f"cutting files wider than {options.chunk_size_m:g} m into chunks")
+        tiles = chunk_tiles(tiles, out / "parts" / "chunks", options.chunk_size_m, options.crs, cancelled)
     # two runs into one folder never mix: outputs of tiles that are not this run's go
     for name in sorted(_stale_names(out, {t.name for t in tiles})):
         remove_tile_outputs(out, name)
@@ -416,7 +420,8 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
                 with open(tmp, "wb") as fh:
                     np.savez(fh, **z)
         gpkg = merger.commit()
-    shutil.rmtree(out / "parts" / "halo", ignore_errors=True)  # scratch: a rerun makes what it needs
+    for scratch in ("halo", "chunks"):   # scratch: a rerun makes what it needs (the same bytes)
+        shutil.rmtree(out / "parts" / scratch, ignore_errors=True)
     tilesets = [Path(r["files"]["tileset"]) for r in done if "tileset" in r.get("files", {})]
     root = write_root_tileset(out / "models", tilesets) if tilesets else None
     mosaics = _write_mosaics(out, done)

@@ -73,7 +73,9 @@ class PipelineOptions:
     Tiles) with ``reconstruction`` (default :class:`sylva.core.reconstruct.Hybrid`),
     ``lod`` and ``leaves``; ``billboards`` also builds each tree's billboard (Zhou et al.,
     :mod:`sylva.core.reconstruct.billboard`), the tileset's far level of detail.  ``id_bits``: bits of the position-derived tree ID
-    (31 for the int32 ``treeID``; smaller only to test collision handling).
+    (31 for the int32 ``treeID``; smaller only to test collision handling).  ``chunk_size_m``: files
+    wider than this are cut into square chunks of this size, each a tile of the run
+    (:mod:`sylva.core.io.chunks`; 0: one tile per file).
     """
 
     buffer_m: float = 15.0
@@ -89,6 +91,7 @@ class PipelineOptions:
     chunk_size: int = 1_000_000
     id_bits: int = 31
     crs: Optional[str] = None
+    chunk_size_m: float = 0.0
 
     def key(self) -> str:
         """A digest of every parameter (what a resumed run must match)."""

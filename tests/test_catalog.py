@@ -67,6 +67,35 @@ def assert_same_forest(a: Path, b: Path, min_agreement=0.995):
     return (la == lb).mean()
 
 
+def test_a_file_cut_into_chunks_gives_the_trees_of_the_whole_file(stand, tmp_path):
+    """CHUNK_SIZE_M: one file becomes square chunks (here 2 x 2 + edges), each a tile with its buffer:
+    the same trees, IDs and point labels as the file whole; the scratch chunks are gone afterwards."""
+    from dataclasses import replace
+
+    from sylva.core.io.chunks import needs_chunks
+    from sylva.core.io.tiles import list_tiles
+
+    root, _, whole = stand
+    tiles, _ = list_tiles([root / "one"])
+    assert needs_chunks(tiles[0], 25.0) and not needs_chunks(tiles[0], 0.0)
+    chunked = run_catalog([root / "one"], tmp_path / "out", replace(FAST, chunk_size_m=25.0))
+    assert chunked.failures == [] and len(chunked.tiles) >= 4
+    assert all(t["name"].startswith("t_0_0_") for t in chunked.tiles)
+    assert chunked.trees == whole.trees
+    assert assert_same_forest(root / "out_one", tmp_path / "out") >= 0.995
+    assert not (tmp_path / "out" / "parts" / "chunks").exists()
+    again = run_catalog([root / "one"], tmp_path / "out", replace(FAST, chunk_size_m=25.0))   # resumed: same chunks
+    assert sorted(again.skipped) == sorted(t["name"] for t in chunked.tiles)
+
+
+def test_too_many_chunks_is_one_line(stand, tmp_path):
+    from dataclasses import replace
+
+    root, _, _ = stand
+    with pytest.raises(InputError, match="CHUNK_SIZE_M=1: .* would be cut into .* chunks"):
+        run_catalog([root / "one"], tmp_path / "out", replace(FAST, chunk_size_m=1.0))
+
+
 def test_three_by_three_tiles_give_the_trees_of_one_tile(stand, tmp_path):
     root, scan, whole = stand
     truth = int(len(np.unique(scan.truth_tree[scan.truth_tree > 0])))
