@@ -19,7 +19,8 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from sylva.core.jit import njit
-from sylva.core.segment import NormalizedCut, ground_mask
+from sylva.core.segment import NormalizedCut
+from sylva.core.segment.base import ground_mask
 from sylva.core.segment import ncut as N
 from sylva.core.segment.ncut import FIEDLER_ITERATIONS, voxel_graph
 

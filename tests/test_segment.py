@@ -326,7 +326,7 @@ def test_mixed_conifer_agrees_with_lidr_when_available():
 
 def test_start_boundary_ncut_and_saddle_match_eq1():
     """The vectorised per-pair NCut (Hu et al. Eq. 1) and saddle height equal a direct count."""
-    from sylva.core.segment import ground_mask
+    from sylva.core.segment.base import ground_mask
     from sylva.core.segment.ncut import _pair_ncut, voxel_graph
 
     cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
@@ -470,7 +470,7 @@ def test_geodesic_partition_equals_scipy_dijkstra():
     scipy.sparse.csgraph.dijkstra(min_only=True) with the documented step cost."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
-    from sylva.core.segment import ground_mask
+    from sylva.core.segment.base import ground_mask
     from sylva.core.segment.ncut import _geodesic_partition, voxel_graph
 
     cloud, _ = cones(TOUCHING, (24, 20), density=30.0)

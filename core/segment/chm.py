@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..progress import CancelCheck, Progress, check, report, scaled
-from . import ground_mask, resolve_tops
+from .base import ground_mask, resolve_tops
 
 __all__ = ["ChmRegionGrowing", "grow_regions"]
 

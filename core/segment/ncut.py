@@ -124,7 +124,7 @@ from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report, scaled
-from . import column_keys, ground_mask, label_columns_below, resolve_tops
+from .base import column_keys, ground_mask, label_columns_below, resolve_tops
 
 __all__ = ["NormalizedCut", "VoxelGraph", "voxel_graph"]
 
