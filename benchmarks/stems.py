@@ -54,16 +54,19 @@ def real_plot():
         print(f"(no TLS trees at {TLS})")
         return
     rng = np.random.default_rng(0)
-    parts, where = [], []
+    parts, where, src = [], [], []
     for k, f in enumerate(files):
         x = np.loadtxt(f)
         low = x[x[:, 2] < x[:, 2].min() + 0.3]
         x = x - np.r_[low[:, :2].mean(axis=0), x[:, 2].min()] + np.r_[4 + 6 * k, 10, 0]
         parts.append(x)
+        src.append(np.full(len(x), k + 1))
         where.append((4 + 6 * k, 10))
     g = rng.uniform(0, 20, (16000, 2))
     parts.append(np.c_[g, rng.normal(0, 0.02, len(g))])
+    src.append(np.zeros(len(g), int))
     pts = np.vstack(parts)
+    src = np.concatenate(src)
     cloud = PointCloud(pts, {})
     t0 = time.perf_counter()
     labels, stems = StemSegmentation().segment_with_stems(cloud)
@@ -72,8 +75,10 @@ def real_plot():
           f"{dt:.2f} s: {len(stems)} stems found")
     for k in range(len(stems)):
         x, y = stems.xy[k] + cloud.origin[:2]
-        print(f"  stem {k + 1}: x {x:.2f} y {y:.2f} DBH {100 * stems.dbh_m[k]:.1f} cm, "
-              f"{int((labels == k + 1).sum()):,} points")
+        print(f"  stem {k + 1}: x {x:.2f} y {y:.2f} DBH {100 * stems.dbh_m[k]:.1f} cm at {stems.dbh_height_m[k]:.1f} m, "
+              f"{int((labels == k + 1).sum()):,} points, "
+              f"{100 * np.mean([(labels[src == t] == k + 1).mean() for t in (1, 2, 3)][k]) if len(stems) == 3 else 0:.1f} % "
+              "of its source tree's points")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,8 @@
 """Stem-based segmentation of terrestrial plot scans (core/segment/stems.py) on synthetic plots with known stems."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -57,3 +59,30 @@ def test_segment_trees_verb_dispatches_to_stems():
 def test_bad_parameters_say_which():
     with pytest.raises(Exception, match="slice"):
         StemSegmentation(slice_low_m=2.0, slice_high_m=1.0)
+
+
+TLS = Path(__file__).resolve().parents[2] / "shared" / "data" / "tls"
+
+
+@pytest.mark.skipif(not (TLS / "tree1.xyz").exists(), reason="the shared TLS scans are not here")
+def test_real_trees_that_fork_near_breast_height_are_found():
+    """tree1, tree7, tree13 (small trees branching at 1.0-1.4 m, tree13 sparse) placed 6 m apart."""
+    rng = np.random.default_rng(0)
+    parts, src = [], []
+    for k, i in enumerate((1, 7, 13)):
+        x = np.loadtxt(TLS / f"tree{i}.xyz")
+        low = x[x[:, 2] < x[:, 2].min() + 0.3]
+        parts.append(x - np.r_[low[:, :2].mean(axis=0), x[:, 2].min()] + np.r_[4 + 6 * k, 10, 0])
+        src.append(np.full(len(x), k + 1))
+    g = rng.uniform(0, 20, (16000, 2))
+    parts.append(np.c_[g, rng.normal(0, 0.02, len(g))])
+    src.append(np.zeros(len(g), int))
+    pts, src = np.vstack(parts), np.concatenate(src)
+    cloud = PointCloud(pts, {})
+    labels, stems = StemSegmentation().segment_with_stems(cloud)
+    assert len(stems) == 3
+    xy = stems.xy + cloud.origin[:2]
+    assert np.abs(xy - np.c_[[4, 10, 16], [10, 10, 10]]).max() < 0.3
+    assert ((stems.dbh_m > 0.1) & (stems.dbh_m < 0.5)).all()
+    for k in range(3):
+        assert (labels[src == k + 1] == k + 1).mean() > 0.8
