@@ -86,3 +86,44 @@ def test_real_trees_that_fork_near_breast_height_are_found():
     assert ((stems.dbh_m > 0.1) & (stems.dbh_m < 0.5)).all()
     for k in range(3):
         assert (labels[src == k + 1] == k + 1).mean() > 0.8
+
+
+def test_segmenttrees_cli_finds_the_stems_of_a_plot_scan_without_crs(tmp_path, capsys):
+    """A terrestrial plot scan as a text file, no CRS, no ground class: METHOD auto picks stems."""
+    import laspy
+
+    from sylva import cli
+    from sylva.core.io.gpkg import read_gpkg
+
+    pts, truth = plot_scan(n_trees=6, size_m=14, seed=5)
+    scan = tmp_path / "plot.xyz"
+    np.savetxt(scan, pts + np.array([500.0, 200.0, 30.0]), fmt="%.4f")
+    trees, seg = tmp_path / "trees.gpkg", tmp_path / "seg.laz"
+    rc = cli.main(["segmenttrees", f"--INPUT={scan}", f"--OUTPUT={seg}", f"--TREES={trees}"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    said = out.out + out.err
+    assert "METHOD stems" in said and "local engineering frame" in said
+    table = read_gpkg(trees, "trees")
+    assert len(table) == 6
+    labels = np.asarray(laspy.read(seg)["treeID"])
+    for t in range(1, 7):                      # each true tree's points mostly under one ID
+        mine = labels[truth["tree"] == t]
+        assert np.bincount(mine).argmax() > 0 and (mine == np.bincount(mine).argmax()).mean() > 0.8
+    # the same scan through METHOD ncut is refused for want of a CRS, in one line naming the file
+    rc = cli.main(["--quiet", "segmenttrees", f"--INPUT={scan}", "--METHOD=ncut", f"--TREES={tmp_path / 'n.gpkg'}"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and "plot.xyz" in err and "CRS" in err
+
+
+def test_airborne_tiles_are_not_plot_scans(sample_laz):
+    from sylva.core.io import read_cloud
+    from sylva.core.segment.stems import AutoSegmentation, is_plot_scan
+    from sylva.core.segment.tile import segment_tile
+    from sylva.core.segment import NormalizedCut
+    from sylva.core.terrain import SMRF, normalize
+
+    assert not is_plot_scan(normalize(read_cloud(sample_laz), classify=SMRF()))
+    pts, _ = plot_scan(n_trees=4, size_m=12, seed=2)
+    assert isinstance(AutoSegmentation().resolve(normalize(PointCloud(pts, {}), classify=SMRF())), StemSegmentation)
+    assert isinstance(AutoSegmentation().resolve(PointCloud(pts[:100], {"height": pts[:100, 2]})), NormalizedCut)

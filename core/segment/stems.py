@@ -57,7 +57,8 @@ from ..cloud import PointCloud
 from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
 
-__all__ = ["StemSegmentation", "Stems", "detect_stems", "fit_circles", "ground_under_canopy"]
+__all__ = ["AutoSegmentation", "StemSegmentation", "Stems", "detect_stems", "fit_circles", "ground_under_canopy",
+           "is_plot_scan"]
 
 
 @dataclass(frozen=True)
@@ -377,3 +378,51 @@ def ground_under_canopy(xyz: np.ndarray, cell_m: float = 0.5, step_m: float = 0.
     if miss.any():
         z[miss] = NearestNDInterpolator(pts, val)(xyz[miss, :2])
     return z
+
+
+def is_plot_scan(cloud: PointCloud, opt: StemSegmentation = StemSegmentation()) -> bool:
+    """True for a terrestrial / mobile plot scan (a height-normalised cloud): the rule of dense single
+    trees (:func:`sylva.core.reconstruct.kmeans.is_dense_scan`) applied to the ground-normalised points
+    (Sylva): at least ``DENSE_LOW_SHARE`` of the points above ground lie below ``DENSE_LOW_M`` (stems
+    seen from below), those points are dense (median distance to the 8th neighbour at most
+    ``DENSE_SPACING_M``), and stems are found in them (:func:`detect_stems`).  Airborne tiles see the
+    crowns from above: few points low down, too sparse, no circles."""
+    from ..reconstruct.kmeans import DENSE_LOW_M, DENSE_LOW_SHARE, DENSE_MIN_POINTS, DENSE_SPACING_M
+
+    h = cloud.attr("height")
+    if h is None or len(cloud) < DENSE_MIN_POINTS:
+        return False
+    h = np.asarray(h, dtype=np.float64)
+    above = h >= opt.ground_m
+    low = np.flatnonzero(above & (h < DENSE_LOW_M))
+    if len(low) < DENSE_MIN_POINTS or len(low) < DENSE_LOW_SHARE * above.sum():
+        return False
+    xyz = cloud.local_xyz()
+    sub = low if len(low) <= 50_000 else low[np.random.default_rng(0).choice(len(low), 50_000, replace=False)]
+    d, _ = cKDTree(xyz[low]).query(xyz[sub], k=9, workers=-1)
+    if np.median(d[:, 8]) > DENSE_SPACING_M:
+        return False
+    stems, _, _ = detect_stems(xyz, h, opt)
+    return len(stems) > 0
+
+
+@dataclass(frozen=True)
+class AutoSegmentation:
+    """``plot`` (:class:`StemSegmentation`) for terrestrial / mobile plot scans (:func:`is_plot_scan`),
+    ``other`` (by default :class:`~sylva.core.segment.NormalizedCut`) for the rest (Sylva)."""
+
+    plot: StemSegmentation = StemSegmentation()
+    other: object = None
+
+    name = "auto"
+
+    def resolve(self, cloud: PointCloud):
+        """The method for this height-normalised cloud."""
+        from . import NormalizedCut
+
+        if is_plot_scan(cloud, self.plot):
+            return self.plot
+        return NormalizedCut() if self.other is None else self.other
+
+    def segment(self, cloud: PointCloud, tops=None, progress: Progress = None, cancelled: CancelCheck = None):
+        return self.resolve(cloud).segment(cloud, tops, progress, cancelled)
