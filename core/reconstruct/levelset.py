@@ -480,44 +480,49 @@ def _branches(nodes: dict, ground_z: float):
     """
     centre, radius, parent, cnt, tip = nodes["centre"], nodes["radius"].copy(), nodes["parent"], nodes["count"], nodes["tip"]
     m = len(centre)
+    parent = np.asarray(parent, dtype=np.int64)
     best = _best_child(parent, cnt)
-    chains, chain_parent, chain_of = [], [], np.full(m, -1, dtype=np.int64)
-    starts = [0] + [i for i in range(1, m) if parent[i] < 0 or best[parent[i]] != i]
-    for s in starts:
-        ch = [s]
-        while best[ch[-1]] >= 0:
-            ch.append(int(best[ch[-1]]))
-        cid = len(chains)
-        for v in ch:
-            chain_of[v] = cid
-        chains.append(ch)
-        chain_parent.append(-1 if parent[s] < 0 else int(chain_of[parent[s]]))
-    # smooth radii along chains and keep each branch's base no thicker than its parent
-    for ch in chains:
-        r = radius[ch]
-        if len(r) >= 3:
-            rp = np.r_[r[0], r, r[-1]]
-            radius[ch] = np.median(np.stack([rp[:-2], rp[1:-1], rp[2:]]), axis=0)
-    for ch in chains:
-        p = parent[ch[0]]
-        if p >= 0 and radius[ch[0]] > radius[p]:
-            radius[ch] = np.minimum(radius[ch], radius[p])
+    chain_of, pos = _chain_ids(parent, best)
+    nc = int(chain_of.max()) + 1 if m else 0
+    order_nodes = np.lexsort((pos, chain_of))              # nodes chain by chain, base to tip
+    lens = np.bincount(chain_of, minlength=nc)
+    off = np.r_[0, np.cumsum(lens)]
+    first, last = order_nodes[off[:-1]], order_nodes[off[1:] - 1]
+    chain_parent = np.where(parent[first] >= 0, chain_of[np.maximum(parent[first], 0)], -1)
+    # smooth radii along chains (running median of three, ends kept) and keep each branch's base no
+    # thicker than its parent
+    r = radius[order_nodes]
+    cid = chain_of[order_nodes]
+    inner = np.zeros(m, dtype=bool)
+    if m > 2:
+        inner[1:-1] = (cid[1:-1] == cid[:-2]) & (cid[1:-1] == cid[2:])
+    i = np.flatnonzero(inner)
+    a_, b_, c_ = r[i - 1], r[i], r[i + 1]
+    sm = r.copy()
+    sm[i] = np.maximum(np.minimum(a_, b_), np.minimum(np.maximum(a_, b_), c_))
+    radius[order_nodes] = sm
+    radius = _clamp_chains(radius, order_nodes, off, parent[first])
     base = np.array([centre[0, 0], centre[0, 1], min(nodes["z_min"], float(centre[0, 2]))])
-    curves, radii = [], []
-    for cid, ch in enumerate(chains):
-        p = parent[ch[0]]
-        pts = [centre[p]] if p >= 0 else [base]
-        rs = [radius[ch[0]]]
-        pts += [centre[v] for v in ch]
-        rs += [radius[v] for v in ch]
-        last = ch[-1]
-        if np.linalg.norm(tip[last] - centre[last]) > 1e-3:
-            pts.append(tip[last])
-            rs.append(radius[last])
-        curves.append(np.array(pts))
-        radii.append(np.array(rs))
-    order = np.zeros(len(chains), dtype=np.int64)
-    for c in range(len(chains)):
+    # centre lines: the parent's centre (or the base), the chain's centres, the last node's tip
+    has_tip = np.linalg.norm(tip[last] - centre[last], axis=1) > 1e-3
+    start = np.where((parent[first] >= 0)[:, None], centre[np.maximum(parent[first], 0)], base)
+    n_out = lens + 1 + has_tip
+    out_off = np.r_[0, np.cumsum(n_out)]
+    pts = np.empty((int(out_off[-1]), 3))
+    rad = np.empty(int(out_off[-1]))
+    pts[out_off[:-1]] = start
+    rad[out_off[:-1]] = radius[first]
+    body = np.repeat(out_off[:-1] + 1 - off[:-1], lens) + np.arange(m)
+    pts[body] = centre[order_nodes]
+    rad[body] = radius[order_nodes]
+    tp = out_off[1:][has_tip] - 1
+    pts[tp] = tip[last[has_tip]]
+    rad[tp] = radius[last[has_tip]]
+    curves = np.split(pts, out_off[1:-1])
+    radii = np.split(rad, out_off[1:-1])
+    chains = np.split(order_nodes, off[1:-1])
+    order = np.zeros(nc, dtype=np.int64)
+    for c in range(nc):                    # parents' chains come first
         if chain_parent[c] >= 0:
             order[c] = order[chain_parent[c]] + 1
     # skeleton: the base, then the nodes (parents first, so node i + 1 has parent parent[i] + 1 or the base)
@@ -525,7 +530,43 @@ def _branches(nodes: dict, ground_z: float):
     sk_parent = np.r_[-1, np.where(parent >= 0, parent + 1, 0)]
     sk_radius = np.r_[radius[0], radius]
     skel = Skeleton(sk_nodes, sk_parent, sk_radius)
-    return curves, radii, np.array(chain_parent, dtype=np.int64), order, skel, chains
+    return curves, radii, np.asarray(chain_parent, dtype=np.int64), order, skel, chains
+
+
+@njit
+def _chain_ids(parent, best):
+    """Per node its chain (chains numbered by their first node) and its position in it; parents first."""
+    m = parent.shape[0]
+    chain = np.empty(m, dtype=np.int64)
+    pos = np.empty(m, dtype=np.int64)
+    n = 0
+    for i in range(m):
+        p = parent[i]
+        if i == 0 or p < 0 or best[p] != i:
+            chain[i] = n
+            pos[i] = 0
+            n += 1
+        else:
+            chain[i] = chain[p]
+            pos[i] = pos[p] + 1
+    return chain, pos
+
+
+@njit
+def _clamp_chains(radius, order_nodes, off, first_parent):
+    """A chain whose first radius exceeds its parent node's is clamped to it, chains in order."""
+    out = radius.copy()
+    for c in range(off.shape[0] - 1):
+        p = first_parent[c]
+        if p < 0:
+            continue
+        cap = out[p]
+        if out[order_nodes[off[c]]] > cap:
+            for k in range(off[c], off[c + 1]):
+                v = order_nodes[k]
+                if out[v] > cap:
+                    out[v] = cap
+    return out
 
 
 def prune_stubs(curves, radii, bparent, border, slack_m: float, factor: float = 3.0, passes: int = 3):
