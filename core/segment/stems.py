@@ -100,6 +100,8 @@ class StemSegmentation:
     ground_step_m: float = 0.3
 
     name = "stems"
+    #: the chain (core/segment/tile.py) classifies the ground even of a cloud whose z looks normalised
+    exact_ground = True
 
     def __post_init__(self):
         if not (0 <= self.slice_low_m < self.slice_high_m):
