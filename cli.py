@@ -16,7 +16,7 @@ from typing import List, Optional
 
 from .algorithms import all_algorithms, get
 from .algorithms import spec as S
-from .core.errors import InputError, SylvaError, disk_error
+from .core.errors import Cancelled, InputError, SylvaError, disk_error
 
 
 class CliFeedback(S.Feedback):
@@ -47,6 +47,11 @@ class CliFeedback(S.Feedback):
             self._open = False
 
     warn = info
+
+    def cancelled(self) -> bool:
+        """True once Ctrl-C or SIGTERM arrived, even when the KeyboardInterrupt it raised was swallowed
+        (a signal handled inside a finaliser or weakref callback only prints "Exception ignored")."""
+        return _SIGNALLED["signal"] is not None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -258,7 +263,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         alg = get(ns.algorithm)
         name = f"sylva {alg.id}"
         return _run(alg, ns, scratch)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Cancelled) as exc:
+        if isinstance(exc, Cancelled) and _SIGNALLED["signal"] not in (None, signal.SIGINT):
+            print(f"\n{name}: terminated", file=sys.stderr)
+            return 143
         print(f"\n{name}: cancelled", file=sys.stderr)
         return 130
     except _Terminated:
@@ -322,5 +330,21 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
     return 0
 
 
+def run() -> None:
+    """The process entry point (the ``sylva`` command and ``python -m sylva.cli``): exit with main()'s code.
+
+    Once main() has returned, Ctrl-C is ignored, so that a signal arriving while Python shuts down
+    cannot turn exit code 130 into death by SIGINT (which Python does for an escaping KeyboardInterrupt).
+    """
+    import signal
+
+    try:
+        code = main()
+    except KeyboardInterrupt:  # between the handlers' restoration and here
+        code = 130
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

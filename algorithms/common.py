@@ -171,7 +171,7 @@ def _input_paths(alg, args: dict, raw: dict) -> list:
             real = _real(item)
             out.append((p.name, real))
             if real.suffix.lower() == ".vpc" and real.is_file():
-                from ..core.catalog import read_vpc
+                from ..core.io.tiles import read_vpc
 
                 try:
                     out.extend((p.name, _real(f)) for f, _ in read_vpc(real))

@@ -22,7 +22,7 @@ def random_skeleton(m: int, seed: int = 0, step_m=(0.2, 0.6)):
     form a near-vertical stem, later nodes mostly extend the previous node
     (a growing branch) and sometimes fork from an earlier node of the crown.
     """
-    from sylva.core.reconstruct.model import Skeleton
+    from sylva.core.skeleton import Skeleton
 
     rng = np.random.default_rng(seed)
     nodes = np.zeros((m, 3))

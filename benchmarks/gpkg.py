@@ -136,7 +136,7 @@ def ogr_write(path: Path, tables) -> None:
 
 def measure(forest: str, folder: str, parts: int, repeat: int, with_ogr: bool = False) -> dict:
     """Run in a subprocess whose sys.path holds the code to measure."""
-    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg_merge import merge_gpkg
     from sylva.core.io.gpkg import write_gpkg
 
     tables = load_tables(Path(forest))

@@ -136,3 +136,26 @@ class PointCloud:
             attrs={k: v[index] for k, v in self.attrs.items()},
             template=template,
         )
+
+
+#: Local frames are anchored on multiples of this many metres (a common multiple of
+#: 0.7 m ncut voxels, 0.5 m CHM cells, 5 m noise voxels, 0.2 m thinning voxels, 1 m cells).
+ANCHOR_GRID_M = 70.0
+
+
+@dataclass(eq=False)
+class AnchoredCloud(PointCloud):
+    """A :class:`PointCloud` whose local frame starts at ``anchor`` (CRS units), not at its minimum.
+
+    (Sylva, not in the paper.) An anchor on multiples of :data:`ANCHOR_GRID_M` puts voxels and grid
+    cells at the same places whatever the tiling, which keeps tree IDs and labels tiling-invariant.
+    ``dataclasses.replace`` (used by ``subset``/``with_attrs``) keeps the anchor.
+    """
+
+    anchor: Any = None
+
+    @property
+    def origin(self) -> np.ndarray:  # noqa: D102
+        if self.anchor is None:
+            return super().origin
+        return np.asarray(self.anchor, dtype=np.float64)

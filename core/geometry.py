@@ -48,7 +48,7 @@ import numpy as np
 
 from .errors import InputError
 from .jit import njit
-from .reconstruct.model import Skeleton
+from .skeleton import Skeleton
 
 __all__ = [
     "PipeModel", "Allometric", "assign_radii", "pipe_model_radii", "allometric_radii",

@@ -27,13 +27,14 @@ import functools
 import os
 import threading
 
-__all__ = ["njit", "jit_status", "Kernel", "compile_seconds", "kernels"]
+__all__ = ["njit", "jit_status", "Kernel", "compile_seconds", "kernels", "recording"]
 
 _LOCK = threading.RLock()
 _NUMBA = None          # the numba module once imported, False when unavailable/disabled
 _KERNELS = []          # every Kernel defined (see kernels())
 _COMPILE = {"seconds": 0.0, "count": 0}   # numba compilations (cache misses) in this process
 _DEPTH = threading.local()
+_RECORD = None         # while recording(): {kernel: (size, copied arguments)} of each kernel's smallest call
 
 
 def _count_compiles(numba) -> None:
@@ -128,7 +129,44 @@ class Kernel:
         fn = self.compiled
         if fn is None:
             fn = self.load()
+        if _RECORD is not None:
+            _remember(self, args)
         return fn(*args)
+
+
+def _size(value) -> int:
+    if isinstance(value, (tuple, list)):
+        return sum(_size(v) for v in value)
+    return int(getattr(value, "nbytes", 8))
+
+
+def _remember(kernel: "Kernel", args) -> None:
+    import copy
+
+    size = _size(args)
+    with _LOCK:
+        if _RECORD is not None and (kernel not in _RECORD or size < _RECORD[kernel][0]):
+            _RECORD[kernel] = (size, copy.deepcopy(args))
+
+
+class recording:
+    """``with recording() as calls:`` keeps, per kernel, a copy of the arguments of its smallest call.
+
+    ``calls`` is {Kernel: args}; tests run a kernel's Python and compiled forms on them and compare.
+    """
+
+    def __enter__(self):
+        global _RECORD
+        _RECORD = {}
+        self.calls = {}
+        return self.calls
+
+    def __exit__(self, *exc):
+        global _RECORD
+        with _LOCK:
+            self.calls.update({k: args for k, (_, args) in _RECORD.items()})
+            _RECORD = None
+        return False
 
 
 def njit(py_func):

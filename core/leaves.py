@@ -38,8 +38,8 @@ import numpy as np
 from .errors import InputError
 from .geometry import _forest, _norm3, branches
 from .jit import njit
-from .reconstruct.model import Skeleton
-from .textures import leaf_aspect, leaf_texture, _shape_name
+from .skeleton import Skeleton
+from .textures import leaf_aspect, leaf_texture, leaf_shape_name
 
 __all__ = ["PATTERNS", "GOLDEN_ANGLE_DEG", "phyllotaxis_azimuths", "LeafCards", "NeedleClusters",
            "LeafMesh", "grow_leaves", "grow_leaves_batch", "leaf_cards", "needle_clusters", "leaf_texture"]
@@ -411,7 +411,7 @@ def _leaf_sizes(method: Union[LeafCards, NeedleClusters]):
     per_tip = int(method.clusters_per_tip if needles else method.leaves_per_tip)
     length_m = float(method.cluster_length_m if needles else method.leaf_length_m)
     width_m = method.cluster_width_m if needles else method.leaf_width_m
-    shape = _shape_name(method.shape)
+    shape = leaf_shape_name(method.shape)
     if width_m is None:
         width_m = length_m * leaf_aspect(shape)
     return needles, per_tip, length_m, width_m, shape, int(method.tip_segments)

@@ -30,7 +30,7 @@ Rules (the design of ARCHITECTURE.md, catalog.py; lidR's catalog engine):
   (tops are points of the cloud, :func:`sylva.core.tops.find_tree_tops`); an
   exactly duplicated top point in two files goes to the tile listed first.
   Tiles thus need not be a regular grid; overlaps and gaps are fine.
-* Tree IDs come from the top's position (:func:`tree_ids`), so the same tree
+* Tree IDs come from the top's position (:func:`sylva.core.treeids.tree_ids`), so the same tree
   gets the same ID in any tiling, run order or worker count.
 * Per-point ``treeID`` of a tile's own points is the label its buffered
   segmentation gives them, owned tree or not (IDs are global, so a border
@@ -54,34 +54,10 @@ from typing import Any, Optional, Tuple
 
 import numpy as np
 
-from .cloud import PointCloud
+from .cloud import ANCHOR_GRID_M, AnchoredCloud, PointCloud
 from .errors import EmptyInputError, InputError, SylvaError
 from .segment import NormalizedCut
-
-#: Local frames are anchored on multiples of this many metres (a common multiple of
-#: 0.7 m ncut voxels, 0.5 m CHM cells, 5 m noise voxels, 0.2 m thinning voxels, 1 m cells).
-ANCHOR_GRID_M = 70.0
-#: Tree tops are snapped to this grid (metres) before hashing them into an ID.
-ID_GRID_M = 0.01
-
-_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-@dataclass(eq=False)
-class AnchoredCloud(PointCloud):
-    """A :class:`PointCloud` whose local frame starts at ``anchor`` (CRS units), not at its minimum.
-
-    ``dataclasses.replace`` (used by ``subset``/``with_attrs``) keeps the anchor.
-    """
-
-    anchor: Any = None
-
-    @property
-    def origin(self) -> np.ndarray:  # noqa: D102
-        if self.anchor is None:
-            return super().origin
-        return np.asarray(self.anchor, dtype=np.float64)
-
+from .treeids import grid_keys, tree_ids
 
 @dataclass(frozen=True)
 class PipelineOptions:
@@ -133,64 +109,6 @@ class TileJob:
     checksum: str = ""                                   # of this tile + neighbours + options
     attempt: int = 1
     file_checksum: str = ""                              # of this tile's file alone (names its halo)
-
-
-# --------------------------------------------------------------------------- tree IDs
-
-def _splitmix64(x: np.ndarray) -> np.ndarray:
-    with np.errstate(over="ignore"):
-        z = (x + np.uint64(0x9E3779B97F4A7C15)) & _MASK64
-        z = ((z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)) & _MASK64
-        z = ((z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)) & _MASK64
-        return z ^ (z >> np.uint64(31))
-
-
-def grid_keys(xy: np.ndarray, metres_per_unit: float = 1.0) -> np.ndarray:
-    """(n, 2) int64 top positions snapped to :data:`ID_GRID_M` (source CRS, any units)."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    return np.round(xy * metres_per_unit / ID_GRID_M).astype(np.int64)
-
-
-def _hash_ids(keys: np.ndarray, salt: np.ndarray, bits: int) -> np.ndarray:
-    gx = keys[:, 0].astype(np.uint64)
-    gy = keys[:, 1].astype(np.uint64)
-    with np.errstate(over="ignore"):
-        h = _splitmix64(_splitmix64(gx) ^ gy)
-        h = _splitmix64(h ^ np.asarray(salt, dtype=np.uint64))
-    return (h & np.uint64((1 << bits) - 1)).astype(np.int64)
-
-
-def tree_ids(keys: np.ndarray, bits: int = 31) -> np.ndarray:
-    """Stable positive IDs (< 2**bits) of trees whose tops snap to ``keys`` (:func:`grid_keys`).
-
-    ID = low ``bits`` bits of a 64-bit splitmix hash of the snapped (x, y), salt 0.
-    Collisions are resolved deterministically: the trees are taken in (gx, gy)
-    order and each gets the first salt 0, 1, 2, ... whose ID is neither 0 nor
-    already taken by an earlier tree.  The result therefore depends only on the
-    *set* of positions; :mod:`sylva.core.catalog` applies the same rule to the
-    whole run's set and rewrites the rare tile whose local set resolved
-    differently.
-    """
-    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
-    if not 2 <= bits <= 31:
-        raise InputError(f"tree IDs need 2..31 bits, got {bits}")
-    ids = _hash_ids(keys, np.zeros(len(keys), dtype=np.uint64), bits)
-    if len(ids) == 0 or ((ids > 0).all() and len(np.unique(ids)) == len(ids)):
-        return ids
-    if len(keys) >= (1 << bits) - 1:
-        raise InputError(f"{len(keys)} trees do not fit {bits}-bit tree IDs")
-    order = np.lexsort((keys[:, 1], keys[:, 0]))
-    taken = set()
-    out = np.zeros(len(keys), dtype=np.int64)
-    for i in order:
-        salt = 0
-        v = int(ids[i])
-        while v == 0 or v in taken:
-            salt += 1
-            v = int(_hash_ids(keys[i:i + 1], np.array([salt], dtype=np.uint64), bits)[0])
-        taken.add(v)
-        out[i] = v
-    return out
 
 
 # --------------------------------------------------------------------------- reading

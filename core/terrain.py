@@ -778,7 +778,8 @@ def normalize(cloud: PointCloud, method: str = "tin", classify: Optional[GroundM
 
 
 
-def _heights(cloud: PointCloud) -> np.ndarray:
+def heights_above_ground(cloud: PointCloud) -> np.ndarray:
+    """The cloud's ``height`` attribute, or its heights from :func:`normalize` when it has none."""
     h = cloud.attr("height")
     if h is None:
         h = normalize(cloud).attrs["height"]
@@ -863,7 +864,7 @@ def canopy_height_model(cloud: PointCloud, resolution_m: float = 0.5, pit_free: 
     if len(cloud) == 0:
         raise EmptyInputError(f"{cloud.name}: no points for a canopy height model")
     report(progress, 0.0, "canopy height model")
-    height = _heights(cloud)
+    height = heights_above_ground(cloud)
     first = cloud.attr("return_number")
     keep = np.isfinite(height)
     if first is not None:

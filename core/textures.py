@@ -50,7 +50,8 @@ _ASPECT = {"ovate": 0.62, "lobed": 0.62, "palmate": 1.0, "lanceolate": 0.3,
 _PETIOLE_V = 0.12  # the blade starts here (v from 0 at the bottom to 1 at the top)
 
 
-def _shape_name(shape: str) -> str:
+def leaf_shape_name(shape: str) -> str:
+    """The leaf shape a shape or species name stands for (one line naming the choices if unknown)."""
     name = SPECIES_SHAPES.get(str(shape).lower(), str(shape).lower())
     if name not in LEAF_SHAPES:
         raise InputError(f"unknown leaf shape {shape!r}: use one of {', '.join(LEAF_SHAPES)} "
@@ -60,7 +61,7 @@ def _shape_name(shape: str) -> str:
 
 def leaf_aspect(shape: str) -> float:
     """Width / length of the drawn leaf (cards of this aspect show it undistorted)."""
-    return _ASPECT[_shape_name(shape)]
+    return _ASPECT[leaf_shape_name(shape)]
 
 
 def _blade_halfwidth(name: str, t: np.ndarray) -> np.ndarray:
@@ -141,7 +142,7 @@ def leaf_texture(shape: str = "ovate", size: int = 256, supersample: int = 3) ->
     subpixels.  The blade is shaded from the midrib outwards with a darker
     midrib and lateral veins.  Deterministic.
     """
-    name = _shape_name(shape)
+    name = leaf_shape_name(shape)
     size = int(size)
     if size < 8:
         raise InputError(f"leaf texture size must be at least 8 pixels, got {size}")
@@ -182,7 +183,7 @@ def leaf_texture(shape: str = "ovate", size: int = 256, supersample: int = 3) ->
 
 # --------------------------------------------------------------------------- PNG
 
-def _png_bytes(rgba: np.ndarray) -> bytes:
+def png_bytes(rgba: np.ndarray) -> bytes:
     """A minimal PNG (8-bit RGBA, filter 0 rows, one zlib IDAT chunk)."""
     h, w = rgba.shape[:2]
     raw = np.zeros((h, w * 4 + 1), dtype=np.uint8)
@@ -208,7 +209,7 @@ def write_png(path, rgba: np.ndarray) -> Path:
             from PIL import Image
             Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(fh, format="PNG", optimize=True)
         except ImportError:
-            fh.write(_png_bytes(rgba))
+            fh.write(png_bytes(rgba))
     return Path(path)
 
 

@@ -372,9 +372,9 @@ def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
                       progress: Progress, cancelled: CancelCheck, diameters=None,
                       apex_diameters=None) -> TreeTops:
     from .noise import isolated_points
-    from .terrain import _heights
+    from .terrain import heights_above_ground
 
-    height = _heights(cloud)
+    height = heights_above_ground(cloud)
     high = np.isfinite(height) & (height >= min_height_m)
     loc = cloud.local_xyz()
     high = np.nonzero(high & ~isolated_points(cloud, isolation_m, among=high, loc=loc))[0]

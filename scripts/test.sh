@@ -19,4 +19,9 @@ fi
 cd "$root"
 # shellcheck source=scripts/env.sh
 . scripts/env.sh
-exec .venv/bin/pytest "$@"
+.venv/bin/pytest "$@"
+if [ $# -eq 0 ]; then
+    # the whole suite ran: a lane with the kernels as plain Python (no numba), as a Python without numba
+    # runs them (tests/test_kernels.py compares both forms on every kernel; this runs the fallback whole)
+    SYLVA_NO_JIT=1 .venv/bin/pytest -q tests/test_noise.py tests/test_tops.py
+fi

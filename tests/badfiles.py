@@ -1,4 +1,5 @@
 """Broken inputs every front end must answer with one clear message (used by several tests)."""
+from dataclasses import dataclass
 from pathlib import Path
 
 import laspy
@@ -45,12 +46,27 @@ def die_on(name, job):
     return process_tile(job)
 
 
-def slow_name(seconds, job):
+def slow_name(seconds, job, **_):
     """A catalog worker function that takes ``seconds`` and returns the tile's name."""
     import time
 
     time.sleep(seconds)
     return job.name
+
+
+@dataclass(frozen=True)
+class Job:
+    """The smallest job the engine (core/engine.py) can run: a name and an attempt."""
+
+    name: str
+    attempt: int = 1
+
+
+def fail_first(job, **_):
+    """A worker function that fails on a job's first attempt and returns (name, attempt) after."""
+    if job.attempt == 1 and job.name.startswith("flaky"):
+        raise RuntimeError(f"{job.name} failed once")
+    return job.name, job.attempt
 
 
 # --------------------------------------------------------------------------- damaged files (issue 17)

@@ -6,11 +6,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sylva.core.catalog import list_tiles, read_vpc, run_catalog, write_vpc
+from sylva.core.catalog import run_catalog
 from sylva.core.errors import InputError
 from sylva.core.io.gpkg import read_gpkg
 from sylva.core.io.las import read_las, write_las
-from sylva.core.pipeline import PipelineOptions, grid_keys, tree_ids
+from sylva.core.io.tiles import list_tiles, read_vpc, write_vpc
+from sylva.core.pipeline import PipelineOptions
+from sylva.core.treeids import grid_keys, tree_ids
 from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
 FAST = PipelineOptions(reconstruct=False)
@@ -249,7 +251,8 @@ def test_a_dying_worker_costs_only_its_own_tile(stand, tmp_path):
     from functools import partial
 
     from badfiles import die_on
-    from sylva.core.catalog import WorkerDied, _run_pool, make_jobs
+    from sylva.core.catalog import make_jobs
+    from sylva.core.engine import WorkerDied, run_pool
 
     root, _, _ = stand
     tiles, _ = list_tiles([root / "three"])
@@ -260,7 +263,7 @@ def test_a_dying_worker_costs_only_its_own_tile(stand, tmp_path):
         outcome[job.name] = err if err is not None else record
         return None
 
-    _run_pool(jobs, 2, on_done, None, work=partial(die_on, "t_1_1"))
+    run_pool(jobs, partial(die_on, "t_1_1"), 2, on_done)
     assert sorted(outcome) == sorted(j.name for j in jobs)
     assert isinstance(outcome["t_1_1"], WorkerDied) and "t_1_1" in str(outcome["t_1_1"])
     others = [v for k, v in outcome.items() if k != "t_1_1"]
@@ -418,7 +421,7 @@ def test_merge_gpkg_gives_the_rows_of_the_reference_merge(tmp_path, remap):
     import sqlite3
     from contextlib import closing
 
-    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg_merge import merge_gpkg
     from sylva.core.io.gpkg import PAGE_SIZE
 
     parts, ids = _parts(tmp_path)
@@ -454,7 +457,7 @@ def _rows(path, table):
 def test_forest_is_merged_while_tiles_run_in_processing_order(stand, tmp_path):
     """The merge during the run gives the rows merge_gpkg gives the parts in processing order (largest
     tile first, then by name), whatever the number of workers; nothing temporary is left."""
-    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg_merge import merge_gpkg
     from sylva.core.pipeline import part_paths
 
     root, _, _ = stand
@@ -477,7 +480,8 @@ def test_the_pool_hands_its_waits_to_the_merge(stand, tmp_path):
     from functools import partial
 
     from badfiles import slow_name
-    from sylva.core.catalog import _run_pool, make_jobs
+    from sylva.core.catalog import make_jobs
+    from sylva.core.engine import run_pool
 
     root, _, _ = stand
     tiles, _ = list_tiles([root / "three"])
@@ -492,7 +496,7 @@ def test_the_pool_hands_its_waits_to_the_merge(stand, tmp_path):
         calls.append(len(finished))
         return len(calls) <= 3                      # three steps of work, then nothing to do
 
-    _run_pool(jobs, 2, on_done, None, work=partial(slow_name, 0.3), idle=idle)
+    run_pool(jobs, partial(slow_name, 0.3), 2, on_done, idle=idle)
     assert sorted(finished) == sorted(j.name for j in jobs)
     assert calls[:4] == [0, 0, 0, 0]                # called before any tile is back
     assert len(calls) < 10 * len(jobs)              # not a busy loop once idle() has nothing to do
@@ -515,3 +519,28 @@ def test_cancel_leaves_no_forest_behind(stand, tmp_path):
         run_catalog([root / "three"], tmp_path / "out", FAST, progress=progress, cancelled=cancelled)
     assert not (tmp_path / "out" / "forest.gpkg").exists()
     assert not list((tmp_path / "out").glob(".forest.gpkg.*"))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_engine_runs_any_function_with_retries(workers):
+    """core.engine.apply knows nothing of tiles: any picklable function of a job, here or in a pool;
+    the job on_done returns is run again, and cancel stops the run."""
+    from dataclasses import replace
+
+    from badfiles import Job, fail_first
+    from sylva.core.engine import apply
+    from sylva.core.errors import Cancelled
+
+    jobs = [Job(n) for n in ("a", "flaky-b", "c", "flaky-d")]
+    outcomes = []
+
+    def on_done(job, result, err):
+        outcomes.append((job.name, job.attempt, result, None if err is None else str(err)))
+        return replace(job, attempt=2) if err is not None else None
+
+    apply(jobs, fail_first, on_done, workers=workers)
+    assert sorted(outcomes) == sorted([("a", 1, ("a", 1), None), ("c", 1, ("c", 1), None),
+                                       ("flaky-b", 1, None, "flaky-b failed once"), ("flaky-b", 2, ("flaky-b", 2), None),
+                                       ("flaky-d", 1, None, "flaky-d failed once"), ("flaky-d", 2, ("flaky-d", 2), None)])
+    with pytest.raises(Cancelled):
+        apply(jobs, fail_first, on_done, workers=workers, cancelled=lambda: True)

@@ -10,7 +10,8 @@ from sylva.core.reconstruct.colonize import (
     SPECIES_PRESETS, GuidedGrowth, crown_fill_markers, find_root_clusters, influence_distance,
     interior_fraction, pca_weights,
 )
-from sylva.core.reconstruct.model import Reconstruction, Skeleton, TreePoints
+from sylva.core.reconstruct.model import Reconstruction, TreePoints
+from sylva.core.skeleton import Skeleton
 from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 
 

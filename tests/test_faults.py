@@ -275,7 +275,7 @@ def test_the_same_crs_written_two_ways_is_one_crs(tmp_path, sample_laz):
     import laspy
     import pyproj
 
-    from sylva.core.catalog import list_tiles
+    from sylva.core.io.tiles import list_tiles
 
     las = laspy.read(sample_laz)
     for name, crs in (("wkt", pyproj.CRS.from_wkt(pyproj.CRS.from_epsg(32632).to_wkt())),

@@ -504,7 +504,7 @@ NASTY = ['it\'s "odd"', 'x"; DROP TABLE gpkg_contents; --', "a'); DELETE FROM tr
 
 @pytest.mark.parametrize("name", NASTY)
 def test_any_layer_name_is_quoted(tmp_path, name):
-    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg_merge import merge_gpkg
     from sylva.core.table import point_layer
 
     xyz = np.array([[0.0, 0.0, 1.0], [10.0, 10.0, 1.0]])
@@ -562,7 +562,7 @@ def test_reading_other_geopackages_and_bad_files(tmp_path):
 # --------------------------------------------------------------------------- merge
 
 def test_merge_conforms_is_indexed_and_styled(tmp_path):
-    from sylva.core.catalog import merge_gpkg
+    from sylva.core.io.gpkg_merge import merge_gpkg
     from sylva.core.table import point_layer
 
     rng = np.random.default_rng(2)

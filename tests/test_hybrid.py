@@ -7,7 +7,8 @@ import pytest
 from sylva.core.errors import Cancelled, EmptyInputError, InputError
 from sylva.core.reconstruct.colonize import GuidedGrowth
 from sylva.core.reconstruct.hybrid import Hybrid
-from sylva.core.reconstruct.model import Reconstruction, Skeleton, TreePoints, minimal_skeleton
+from sylva.core.reconstruct.model import Reconstruction, TreePoints, minimal_skeleton
+from sylva.core.skeleton import Skeleton
 from sylva.core.reconstruct.skeleton import GreedySkeleton
 from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 

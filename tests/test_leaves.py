@@ -9,7 +9,7 @@ from sylva.core import geometry as G
 from sylva.core import leaves as LV
 from sylva.core import textures as TX
 from sylva.core.errors import InputError
-from sylva.core.reconstruct.model import Skeleton
+from sylva.core.skeleton import Skeleton
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("geometry_bench", ROOT / "benchmarks" / "geometry.py")

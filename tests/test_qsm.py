@@ -120,7 +120,7 @@ def test_one_sided_sampling_keeps_half():
 
 def test_cylinders_from_a_skeleton_with_radii():
     from sylva.core.qsm import cylinders_from_skeleton
-    from sylva.core.reconstruct.model import Skeleton
+    from sylva.core.skeleton import Skeleton
 
     nodes = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 2], [0, 0, 3], [0.5, 0, 2.5], [1.0, 0, 3.0]], float)
     parent = np.array([-1, 0, 1, 2, 2, 4])

@@ -460,14 +460,6 @@ def test_skeleton_helpers():
     assert sk.tips().tolist() == [3, 4, 5]
     seg = np.linalg.norm(nodes[1:] - nodes[[0, 1, 1, 2, 2]], axis=1)
     assert sk.length() == pytest.approx(seg.sum())
-    br = [b.tolist() for b in sk.branches()]
-    assert br[0] == [0, 1, 2, 4]                           # the straightest continuation
-    assert sorted(map(tuple, br[1:])) == [(1, 3), (2, 5)]
-    # every segment in exactly one chain
-    segs = sorted((b[i], b[i + 1]) for b in br for i in range(len(b) - 1))
-    assert segs == sorted((int(p), int(c)) for c, p in zip(*sk.segments()))
-    br_sub = [b.tolist() for b in sk.branches("subtree")]
-    assert br_sub[0][:3] == [0, 1, 2]
     assert sk.depth().tolist() == [0, 1, 2, 2, 3, 3]
     d = sk.distance(np.array([[0.0, 0.5, 0.5], [0, 0, -2.0]]))
     np.testing.assert_allclose(d, [0.5, 2.0])

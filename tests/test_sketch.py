@@ -12,7 +12,7 @@ from sylva.core.reconstruct import TreePoints, reconstruct_tree
 from sylva.core.reconstruct.sketch import (SketchCompletion, SketchTree, crown_silhouettes, depth_retrieval,
                                            grow_small_branches, project_front, project_side, projection_error,
                                            stroke_graph, tree_from_sketch)
-from sylva.core.reconstruct.model import Skeleton
+from sylva.core.skeleton import Skeleton
 
 H = 20.0
 # Hand-made strokes in "pixels" (y up): a trunk, a branch that starts just off the trunk line and crosses

@@ -66,9 +66,9 @@ _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 @functools.lru_cache(maxsize=32)
 def leaf_png(shape: str, size: int = 256) -> bytes:
     """The PNG bytes of a leaf texture (cached: drawing and compressing it takes ~0.3 s)."""
-    from ..textures import _png_bytes, leaf_texture
+    from ..textures import png_bytes, leaf_texture
 
-    return _png_bytes(np.ascontiguousarray(leaf_texture(shape, size), dtype=np.uint8))
+    return png_bytes(np.ascontiguousarray(leaf_texture(shape, size), dtype=np.uint8))
 
 
 @njit

@@ -28,6 +28,7 @@ be placed in ECEF: :class:`~sylva.core.errors.CRSError`.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import List, Optional, Sequence
 
@@ -282,3 +283,45 @@ def write_tileset(models: Sequence[TreeModel], folder, frame: ExportFrame, origi
     written.extend(write_sidecars(path, georef))
     report(progress, 1.0, "done")
     return written
+
+
+def write_root_tileset(folder, tilesets: Sequence[Path]) -> Optional[Path]:
+    """``folder/tileset.json`` whose children are the per-tile tilesets (external tileset content).
+
+    Each child's bounding volume is its tileset's root box carried into ECEF
+    (an oriented box: centre ``M c``, half-axes ``R h``), so it is as tight as
+    the tile's own; the root is the box, in the first tile's east-north-up
+    axes, around every child box's corners.  Children refine by REPLACE: a
+    client (QGIS's tiled scene layer merges an external tileset's root into
+    the tile that points to it) then swaps a tile's coarse content for its
+    full models instead of drawing both.
+    """
+    children, corners, axes, errors = [], [], None, []
+    folder = Path(folder)
+    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+    for ts in tilesets:
+        doc = json.loads(Path(ts).read_text("utf-8"))
+        root = doc["root"]
+        M = np.array(root.get("transform", np.eye(4).ravel().tolist()), dtype=np.float64).reshape(4, 4).T
+        box = np.array(root["boundingVolume"]["box"], dtype=np.float64)
+        centre = (M @ np.r_[box[:3], 1.0])[:3]
+        half = (M[:3, :3] @ box[3:].reshape(3, 3).T).T           # rows: the three half-axes in ECEF
+        if axes is None:
+            axes = M[:3, :3] / np.linalg.norm(M[:3, :3], axis=0)  # columns: east, north, up at the first tile
+        corners.append(centre + signs @ half)
+        errors.append(float(doc.get("geometricError", root.get("geometricError", 0.0))))
+        children.append({"boundingVolume": {"box": [*centre.tolist(), *half.ravel().tolist()]},
+                         "geometricError": errors[-1], "refine": "REPLACE",
+                         "content": {"uri": Path(os.path.relpath(ts, folder)).as_posix()}})
+    if not children:
+        return None
+    local = np.concatenate(corners) @ axes                        # corners in the first tile's ENU axes
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    centre = axes @ ((lo + hi) / 2.0)
+    half = (axes * ((hi - lo) / 2.0)).T
+    diagonal = 2.0 * float(np.linalg.norm((hi - lo) / 2.0))
+    doc = {"asset": {"version": "1.1", "extras": {"generator": "Sylva catalog"}},
+           "geometricError": diagonal,
+           "root": {"boundingVolume": {"box": [*centre.tolist(), *half.ravel().tolist()]},
+                    "geometricError": max(errors) * 2 + 1.0, "refine": "REPLACE", "children": children}}
+    return atomic_write_bytes(folder / "tileset.json", (json.dumps(doc, indent=1) + "\n").encode("utf-8"))

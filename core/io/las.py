@@ -147,7 +147,7 @@ def units_of(crs) -> Units:
     return Units(horizontal_m=h_m, vertical_m=v_m)
 
 
-def _as_crs(crs, where: str):
+def as_crs(crs, where: str):
     """A pyproj CRS from anything pyproj accepts ("EPSG:2994", 26912, WKT, CRS)."""
     if crs is None:
         return None
@@ -224,7 +224,7 @@ def _units_from_header(header, crs, from_file: bool) -> Units:
 def _crs_and_units(header, crs, where, units=None):
     """(crs, units, parsed-from-file crs) for a header and optional overrides."""
     if crs is not None:
-        crs = _as_crs(crs, where)
+        crs = as_crs(crs, where)
         parsed = None
     else:
         crs = parsed = parse_crs(header, where)
@@ -237,7 +237,7 @@ def _crs_and_units(header, crs, where, units=None):
     return crs, _units_from_header(header, parsed, True), parsed
 
 
-def _require_linear(units: Units, crs, where: str) -> None:
+def require_linear(units: Units, crs, where: str) -> None:
     """Refuse a geographic (degree) CRS: Sylva computes in metres from x/y in
     metres or feet, and does not reproject."""
     if math.isnan(units.horizontal_m):
@@ -501,7 +501,7 @@ def read_las(path, crs=None, *, units: Optional[Units] = None, allow_empty: bool
     with _open(path) as reader:
         header = reader.header
         crs, units, parsed = _crs_and_units(header, crs, str(path), units)
-        _require_linear(units, crs, str(path))
+        require_linear(units, crs, str(path))
         if header.point_count == 0 and not allow_empty:
             raise EmptyInputError(f"{path}: the file holds no points")
         try:
@@ -537,7 +537,7 @@ def read_las_chunks(path, chunk_size: int = 1_000_000, crs=None, *,
     try:
         header = reader.header
         crs, units, parsed = _crs_and_units(header, crs, str(path), units)
-        _require_linear(units, crs, str(path))
+        require_linear(units, crs, str(path))
         if header.point_count == 0 and not allow_empty:
             raise EmptyInputError(f"{path}: the file holds no points")
     except BaseException:
@@ -863,7 +863,7 @@ def _prepare(cloud: PointCloud, extra: Optional[dict], where: str):
     source_crs = template.crs if template is not None else None
     if crs is not None and (source_crs is None or not (crs is source_crs or crs == source_crs)):
         try:
-            _set_crs(header, _as_crs(crs, where))
+            _set_crs(header, as_crs(crs, where))
         except SylvaError:
             raise
         except Exception as err:

@@ -28,7 +28,7 @@ import numpy as np
 from ..cloud import PointCloud, Units
 from ..errors import EmptyInputError, InputError
 from ..progress import CancelCheck, Progress, check, report
-from .las import _as_crs, _require_linear, units_of
+from .las import as_crs, require_linear, units_of
 
 __all__ = ["read_xyz", "COLUMN_ALIASES"]
 
@@ -196,10 +196,10 @@ def open_point_file(path, kind: str, crs, units, progress: Progress = None, canc
         raise InputError(f"{where}: is a folder, not a {kind}")
     check(cancelled)
     report(progress, 0.0, f"reading {path.name}")
-    crs = _as_crs(crs, where)
+    crs = as_crs(crs, where)
     if units is None:
         units = units_of(crs)
-        _require_linear(units, crs, where)
+        require_linear(units, crs, where)
     elif not isinstance(units, Units):
         units = Units(horizontal_m=float(units), vertical_m=float(units))
     return path, where, crs, units

@@ -317,7 +317,8 @@ def _graph_frnn_knn(points, radius, k, cells_per_radius, cell_limit, nbins, cap)
             far_j[nfar] = buf_j[t]      # kept when among the kk nearest, farther than r
             nfar += (d <= kth) & (d > far2)
         far_ptr[i + 1] = nfar
-    return True, frnn_ptr, frnn_j, far_ptr, far_j, tie, n_knn
+    # only the filled parts (beyond them the buffers hold whatever was there)
+    return True, frnn_ptr, frnn_j[:min(frnn_ptr[n], frnn_j.shape[0])], far_ptr, far_j[:nfar], tie, n_knn
 
 
 @njit
@@ -451,7 +452,7 @@ def _graph_csr(points, frnn_ptr, frnn_j, far_ptr, far_j, tie_i, tie_nn, radius):
             label_of_root[a] = ncomp
             ncomp += 1
         labels[r] = label_of_root[a]
-    return indptr, indices, m, length, labels, ncomp
+    return indptr, indices[:m], m, length[:m], labels, ncomp
 
 
 def build_graph(points: np.ndarray, radius_m: float = 1.2, k: int = 30) -> Graph:
@@ -499,4 +500,4 @@ def graph_arrays(points: np.ndarray, radius_m: float = 1.2, k: int = 30) -> Grap
         nn = np.zeros((0, 1), dtype=np.int64)
     indptr, indices, m, length, labels, ncomp = _graph_csr(points, frnn_ptr, frnn_j, far_ptr, far_j, tie_i, nn,
                                                            radius)
-    return Graph(CSRArrays(indptr, indices[:m], length[:m], (n, n)), int(ncomp), labels, int(n_knn))
+    return Graph(CSRArrays(indptr, indices, length, (n, n)), int(ncomp), labels, int(n_knn))

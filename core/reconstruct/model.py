@@ -2,11 +2,8 @@
 
 * :class:`TreePoints` — the points of one segmented tree in a local metric
   frame (z up) plus the terrain height under it: what every method takes.
-* :class:`Skeleton` — a rooted tree of nodes (``parent`` array, parents
-  before children), the common output of Hu et al.'s greedy skeleton
-  (:mod:`.skeleton`), Guo et al.'s guided growth (``colonize``) and any later
-  method; ``radius`` stays 0 until :mod:`sylva.core.geometry` fills it (pipe
-  model, Hu et al. 2017 §5.5, Eq. 6).
+* :class:`~sylva.core.skeleton.Skeleton` (defined below the geometry, in
+  :mod:`sylva.core.skeleton`) — what every method returns.
 * :class:`Reconstruction` — a skeleton plus how it was obtained: method name,
   share of candidate points reached, graph connectivity, per-step timings and
   counts, and flags such as ``"too_few_points"``.
@@ -22,6 +19,7 @@ import numpy as np
 
 from ..errors import EmptyInputError, InputError
 from ..jit import njit
+from ..skeleton import Skeleton
 
 
 @dataclass
@@ -66,162 +64,6 @@ class TreePoints:
 
     def __len__(self) -> int:
         return len(self.xyz)
-
-
-@dataclass
-class Skeleton:
-    """A rooted tree of nodes in the same metric frame as the tree's points.
-
-    ``nodes`` (m, 3) positions; ``parent`` (m,) int64 with -1 for the root
-    (node 0 in every skeleton Sylva builds) and ``parent[i] < i`` otherwise,
-    so a forward pass visits parents before children; ``radius`` (m,) metres,
-    0 until geometry fills it; ``is_added`` (m,) True where a node stands for
-    added trunk/root points (Hu et al. §4.2) rather than measured ones.
-    """
-
-    nodes: np.ndarray
-    parent: np.ndarray
-    radius: Optional[np.ndarray] = None
-    is_added: Optional[np.ndarray] = None
-
-    def __post_init__(self):
-        self.nodes = np.asarray(self.nodes, dtype=np.float64).reshape(-1, 3)
-        m = len(self.nodes)
-        self.parent = np.asarray(self.parent, dtype=np.int64).reshape(-1)
-        self.radius = (np.zeros(m) if self.radius is None
-                       else np.asarray(self.radius, dtype=np.float64).reshape(-1))
-        self.is_added = (np.zeros(m, dtype=bool) if self.is_added is None
-                         else np.asarray(self.is_added, dtype=bool).reshape(-1))
-        if not (len(self.parent) == len(self.radius) == len(self.is_added) == m):
-            raise ValueError("skeleton arrays must all have one entry per node")
-        if m:
-            idx = np.arange(m)
-            bad = (self.parent >= idx) | (self.parent < -1)
-            if bad.any() or (self.parent == -1).sum() != 1:
-                raise ValueError("skeleton parent array must have exactly one root (-1) "
-                                 "and every parent before its child")
-
-    def __len__(self) -> int:
-        return len(self.nodes)
-
-    @property
-    def root(self) -> int:
-        """Index of the root node (-1 for an empty skeleton)."""
-        roots = np.flatnonzero(self.parent == -1)
-        return int(roots[0]) if len(roots) else -1
-
-    def children(self) -> List[np.ndarray]:
-        """For every node, the indices of its children (ascending)."""
-        m = len(self)
-        kids = np.flatnonzero(self.parent >= 0)
-        order = np.argsort(self.parent[kids], kind="stable")
-        kids = kids[order]
-        counts = np.bincount(self.parent[kids], minlength=m)
-        return np.split(kids, np.cumsum(counts)[:-1]) if m else []
-
-    def n_children(self) -> np.ndarray:
-        """Number of children per node."""
-        ok = self.parent >= 0
-        return np.bincount(self.parent[ok], minlength=len(self))
-
-    def tips(self) -> np.ndarray:
-        """Indices of nodes without children (a lone root counts as a tip)."""
-        return np.flatnonzero(self.n_children() == 0)
-
-    def segments(self):
-        """(child, parent) index arrays of every segment (edge) of the skeleton."""
-        child = np.flatnonzero(self.parent >= 0)
-        return child, self.parent[child]
-
-    def segment_lengths(self) -> np.ndarray:
-        child, par = self.segments()
-        return np.linalg.norm(self.nodes[child] - self.nodes[par], axis=1)
-
-    def length(self) -> float:
-        """Total length of all segments in metres."""
-        return float(self.segment_lengths().sum())
-
-    def depth(self) -> np.ndarray:
-        """Number of segments from the root to each node."""
-        d = np.zeros(len(self), dtype=np.int64)
-        for i in range(1, len(self)):  # parents precede children
-            if self.parent[i] >= 0:
-                d[i] = d[self.parent[i]] + 1
-        return d
-
-    def branches(self, continuation: str = "angle") -> List[np.ndarray]:
-        """Decompose the skeleton into chains of node indices, each running to a tip.
-
-        The first chain starts at the root; every other chain starts at the
-        branching node it leaves (so it shares that node with its parent
-        chain) and runs to a tip.  At a branching node a chain continues into
-        the child with the smallest bending angle (``continuation="angle"``,
-        the botanical leader, as Hu et al. §5.5 form branches "with a small
-        change of ... bending angle") or into the child carrying most tips
-        (``continuation="subtree"``, the thickest child under the pipe model);
-        the other children start new chains.  Every segment belongs to exactly
-        one chain.
-        """
-        m = len(self)
-        if m == 0:
-            return []
-        if continuation not in ("angle", "subtree"):
-            raise ValueError("continuation must be 'angle' or 'subtree'")
-        kids = self.children()
-        if continuation == "subtree":
-            weight = (self.n_children() == 0).astype(np.int64)
-            for i in range(m - 1, 0, -1):  # children after parents: reverse pass
-                p = self.parent[i]
-                if p >= 0:
-                    weight[p] += weight[i]
-        out = []
-        stack = [(self.root, -1)]  # (first node, node the chain leaves from)
-        while stack:
-            start, fork = stack.pop()
-            chain = [fork] if fork >= 0 else []
-            node = start
-            while True:
-                chain.append(node)
-                ks = kids[node]
-                if len(ks) == 0:
-                    break
-                if len(ks) == 1:
-                    best = ks[0]
-                elif continuation == "angle":
-                    p = self.parent[node]
-                    incoming = (self.nodes[node] - self.nodes[p]) if p >= 0 else np.array([0, 0, 1.0])
-                    out_v = self.nodes[ks] - self.nodes[node]
-                    cosang = out_v @ incoming / np.maximum(
-                        np.linalg.norm(out_v, axis=1) * np.linalg.norm(incoming), 1e-12)
-                    best = ks[int(np.argmax(cosang))]
-                else:
-                    best = ks[int(np.argmax(weight[ks]))]
-                for k in ks[::-1]:
-                    if k != best:
-                        stack.append((int(k), node))
-                node = int(best)
-            out.append(np.asarray(chain, dtype=np.int64))
-        return out
-
-    def distance(self, points: np.ndarray, chunk: int = 200_000) -> np.ndarray:
-        """Distance in metres from each point to the nearest skeleton segment (or node)."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if len(self) == 0:
-            return np.full(len(points), np.inf)
-        child, par = self.segments()
-        if len(child) == 0:
-            return np.linalg.norm(points - self.nodes[self.root], axis=1)
-        a = self.nodes[par]
-        ab = self.nodes[child] - a
-        ab2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-        out = np.empty(len(points))
-        step = max(1, chunk // len(a))
-        for s in range(0, len(points), step):
-            p = points[s:s + step, None, :] - a[None, :, :]  # (c, m, 3)
-            t = np.clip((p * ab[None]).sum(axis=2) / ab2[None], 0.0, 1.0)
-            d = p - t[..., None] * ab[None]
-            out[s:s + step] = np.sqrt((d * d).sum(axis=2).min(axis=1))
-        return out
 
 
 @dataclass

@@ -70,7 +70,7 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
     """Algorithm 2's loop (see :func:`greedy_skeleton`); plain loops for numba.
 
     Returns (point_of_node, parent, cos α of each node's segment (nan for the
-    first segment), all three valid up to the returned node count, visited).  Dot products are written out as
+    first segment), all three of the returned node count, visited).  Dot products are written out as
     (x·x' + y·y') + z·z' everywhere, so the results do not depend on a BLAS.
     """
     n = points.shape[0]
@@ -261,7 +261,7 @@ def _greedy_kernel(points, indptr, indices, directions, start, end, v0, cos_a, c
             h_u[pos, 1] = e_u[el, 1]
             h_u[pos, 2] = e_u[el, 2]
             counter += 1
-    return point_of_node, parent, node_cos, nodes, visited
+    return point_of_node[:nodes], parent[:nodes], node_cos[:nodes], nodes, visited
 
 
 def greedy_skeleton(points: np.ndarray, adjacency, directions: np.ndarray, start: int, end: int,

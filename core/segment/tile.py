@@ -25,7 +25,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..cloud import PointCloud
+from ..cloud import ANCHOR_GRID_M, AnchoredCloud, PointCloud
 from ..progress import CancelCheck, Progress, report, scaled
 
 __all__ = ["SegmentedTile", "segment_tile", "tree_tops_of"]
@@ -65,13 +65,12 @@ def segment_tile(cloud: PointCloud, method=None, ground_cell_m: float = 0.5,
     """Segment a tile (see the module docstring); ``method`` defaults to :class:`NormalizedCut`.
 
     The local frame is anchored on the global grid of
-    :data:`sylva.core.pipeline.ANCHOR_GRID_M` (voxels and cells fall on the
+    :data:`sylva.core.cloud.ANCHOR_GRID_M` (voxels and cells fall on the
     same places whatever the tile's extent); ``tin_radius_m`` 7.5 is half the
     pipeline's default buffer."""
     from dataclasses import fields
 
     from ..noise import noise_mask
-    from ..pipeline import ANCHOR_GRID_M, AnchoredCloud
     from ..terrain import SMRF, is_normalized, normalize
     from . import NormalizedCut, segment_trees
 
