@@ -28,19 +28,20 @@ def crs_override() -> Param:
     )
 
 
-def load_cloud(args: dict, feedback: Feedback):
-    """Read INPUT (honouring the CRS override), insisting on a CRS, and tell the user its units."""
+def load_cloud(args: dict, feedback: Feedback, require_crs: bool = True):
+    """Read INPUT (honouring the CRS override), insisting on a CRS unless ``require_crs`` is False (then a
+    file without one is a local engineering frame), and tell the user its units."""
     from ..core.io import read_cloud
 
     cloud = read_cloud(args["INPUT"], crs=args.get("CRS") or None)
-    if cloud.crs is None:
+    if cloud.crs is None and require_crs:
         raise CRSError(
             f"{args['INPUT']}: the file has no coordinate reference system; "
             "set the CRS parameter (for example EPSG:32632)"
         )
-    feedback.info(
-        f"{Path(args['INPUT']).name}: {len(cloud):,} points, CRS {cloud.crs.name}, units {cloud.units.describe()}"
-    )
+    frame = (f"CRS {cloud.crs.name}" if cloud.crs is not None else
+             "no CRS: a local engineering frame, outputs are written in the file's coordinates")
+    feedback.info(f"{Path(args['INPUT']).name}: {len(cloud):,} points, {frame}, units {cloud.units.describe()}")
     return cloud
 
 

@@ -149,7 +149,7 @@ def load_trees(args: dict, feedback: Feedback):
         if span.max() > SINGLE_TREE_MAX_M:
             raise InputError(f"{args['INPUT']}: the point cloud has no treeID dimension and spans "
                              f"{span[0]:.0f} m x {span[1]:.0f} m, more than one tree; run 'Segment trees' "
-                             "(sylva:segmenttrees) on it first")
+                             "(sylva:segmenttrees; METHOD stems, or auto, for a terrestrial plot scan) on it first")
         feedback.info(f"{name}: no treeID dimension: modelled as one tree (a single-tree scan, "
                       f"{span[0]:.1f} m x {span[1]:.1f} m)")
         source = source.with_attrs(treeID=np.ones(len(source), dtype=np.int32))

@@ -5,6 +5,7 @@ import numpy as np
 
 from ..core.progress import scaled
 from ..core.segment import ChmRegionGrowing, NormalizedCut
+from ..core.segment.stems import AutoSegmentation, StemSegmentation
 from ..core.table import VectorTable
 from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
 from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
@@ -130,12 +131,37 @@ CHM_PARAMS = method_params(ChmRegionGrowing, {
            "max_crown_diameter_m": (0.5, 100.0)},
    prefix="CHM region growing: ")
 
-METHODS = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
-SEGMENTATION_LABELS = ("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)")
+STEMS_PARAMS = method_params(StemSegmentation, {
+    "slice_low_m": ("stripe bottom (m)", "Lowest height above ground of the stripe in which stems are sought "
+                    "(Laino et al. 2024's stripe)."),
+    "slice_high_m": ("stripe top (m)", "Highest height above ground of that stripe."),
+    "section_m": ("section thickness (m)", "The stripe is cut into sections this thick, one centred at 1.3 m; "
+                  "every section's clusters get a circle fit (Cabo et al. 2018 §2.3)."),
+    "cluster_m": ("cluster distance (m)", "Points of a section closer than this are one cluster (DBSCAN)."),
+    "min_dbh_m": ("smallest stem diameter (m)", "Thinner circles are not stems."),
+    "max_dbh_m": ("largest stem diameter (m)", "Wider circles are not stems."),
+    "bridge_m": ("occlusion bridge (m)", "Pieces of a crown cut off from every stem by occlusion join the tree of "
+                 "the nearest assigned point within this distance (Sylva, not in the papers); 0 turns this off."),
+}, advanced=("slice_low_m", "slice_high_m", "section_m", "cluster_m", "min_dbh_m", "max_dbh_m", "bridge_m"),
+   ranges={"slice_low_m": (0.0, 10.0), "slice_high_m": (0.1, 20.0), "section_m": (0.02, 2.0),
+           "cluster_m": (0.005, 2.0), "min_dbh_m": (0.0, 5.0), "max_dbh_m": (0.01, 10.0), "bridge_m": (0.0, 20.0)},
+   prefix="Stems: ")
+
+METHODS = {"ncut": NormalizedCut, "chm": ChmRegionGrowing, "stems": StemSegmentation, "auto": AutoSegmentation}
+SEGMENTATION_LABELS = ("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)",
+                       "Stems of terrestrial plot scans (Cabo et al. 2018, 3DFin)",
+                       "Automatic: stems for terrestrial plot scans, normalised cut otherwise")
 
 
 def segmentation_method(args: dict):
     """The segmentation method value of METHOD and its parameters (segmenttrees and pipeline)."""
+    # the stems' own parameters only (its voxel_m is not the normalised cut's VOXEL_M)
+    stems = {p.name: args.get(p.name) for p in STEMS_PARAMS}
+    if args["METHOD"] == "stems":
+        return build_method(StemSegmentation, stems)
+    if args["METHOD"] == "auto":
+        return AutoSegmentation(plot=build_method(StemSegmentation, stems),
+                                other=segmentation_method({**args, "METHOD": "ncut"}))
     cls = METHODS[args["METHOD"]]
     fixed = {"min_height_m": args["MIN_HEIGHT_M"]}
     window = args.get("TOP_WINDOW_M")
@@ -153,10 +179,21 @@ def run_segment(args: dict, feedback: Feedback) -> Result:
     from ..core.measure import CrownBase, tree_metrics
     from ..core.segment.tile import segment_tile
 
-    source = load_cloud(args, feedback)
+    from ..core.errors import CRSError
+
+    # a terrestrial plot scan may come in a local engineering frame; airborne methods need the CRS
+    source = load_cloud(args, feedback, require_crs=args["METHOD"] not in ("stems", "auto"))
     seg = segment_tile(source, segmentation_method(args), progress=scaled(feedback.progress, 0.02, 0.8),
                        cancelled=feedback.cancelled)
     cloud, keep, labels = seg.cloud, seg.keep, seg.labels
+    stems = isinstance(seg.method, StemSegmentation)
+    if source.crs is None and not stems:
+        # airborne tiles need their CRS; a terrestrial plot scan may be in a local engineering frame
+        raise CRSError(f"{args['INPUT']}: the file has no coordinate reference system; "
+                       "set the CRS parameter (for example EPSG:32632)")
+    if args["METHOD"] == "auto":
+        feedback.info("a terrestrial plot scan: trees segmented by their stems (METHOD stems)" if stems else
+                      "trees segmented by the normalised cut (METHOD ncut; not a terrestrial plot scan)")
     if not keep.all():
         feedback.info(f"{int((~keep).sum()):,} noise points left out (classes 7/18, withheld, isolated)")
     feedback.progress(0.8, "measuring trees")
@@ -200,7 +237,11 @@ SEGMENT_TREES = Algorithm(
         "noise left out, tree tops found by a local-maximum filter, and the canopy is cut into trees by the "
         "normalised cut of Hu et al. (2017, §4.1) on a voxel graph whose links weigh horizontal and "
         "vertical distance, intensity and colour (METHOD ncut), or by seeded region growing on a "
-        "canopy height model (Dalponte & Coomes 2016; METHOD chm), the classic baseline. "
+        "canopy height model (Dalponte & Coomes 2016; METHOD chm), the classic baseline. Terrestrial and "
+        "mobile plot scans (stems seen from below; no CRS needed: a local engineering frame) are segmented by "
+        "their stems (METHOD stems, chosen by METHOD auto): stems found by circle fits in sections of a "
+        "0.3–2.5 m stripe (Cabo et al. 2018; Laino et al. 2024), every other point given to the stem it "
+        "is connected to. "
         "Outputs: the tile with a treeID dimension (0 = no tree), tree tops, crown polygons, crown "
         "and stem points, and a trees table. A tree's crown base is where its vertical point profile, "
         "read from the top down, first has a gap wider than CROWN_BASE_GAP_M; its points below "
@@ -208,10 +249,15 @@ SEGMENT_TREES = Algorithm(
     ),
     params=(
         input_cloud(),
-        Param("METHOD", ENUM, "Segmentation method", options=tuple(METHODS), default="ncut",
+        Param("METHOD", ENUM, "Segmentation method", options=tuple(METHODS), default="auto",
               labels=SEGMENTATION_LABELS,
-              help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on "
-                   "the canopy height model (Dalponte & Coomes 2016). Each method's own settings are "
+              help="auto (default): stems for terrestrial or mobile plot scans (at least 3 % of the points "
+                   "above ground lie below 2 m, densely: 8th neighbour within 0.25 m, and stems are found "
+                   "there), ncut otherwise; ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: "
+                   "region growing on the canopy height model (Dalponte & Coomes 2016); stems: stems found "
+                   "in sections of a 0.3–2.5 m stripe by circle fits and every other point given to the stem "
+                   "it is connected to (Cabo et al. 2018; Laino et al. 2024, 3DFin), with the ground "
+                   "classified under the canopy from the lowest points. Each method's own settings are "
                    "under Advanced parameters, named after it."),
         Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
               help="Diameter of the local-maximum window that finds the tree tops guiding the "
@@ -220,6 +266,7 @@ SEGMENT_TREES = Algorithm(
               help="Lower tops are not trees; lower points belong to a tree only under its crown."),
         *NCUT_PARAMS,
         *CHM_PARAMS,
+        *STEMS_PARAMS,
         Param("HULL", ENUM, "Crown outline", options=("convex", "concave"), default="convex",
               labels=("Convex hull", "Concave hull (tighter)"),
               help="convex: convex hull of the crown points; concave: a tighter outline (CONCAVITY)."),

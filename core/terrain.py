@@ -749,18 +749,19 @@ def is_normalized(cloud: PointCloud, tolerance_m: float = 0.5) -> bool:
 
 def normalize(cloud: PointCloud, method: str = "tin", classify: Optional[GroundMethod] = None,
               k: int = 10, power: float = 2.0, cell_m: float = 0.0,
-              tin_radius_m: Optional[float] = None) -> PointCloud:
+              tin_radius_m: Optional[float] = None, trust_normalized: bool = True) -> PointCloud:
     """A copy of ``cloud`` with attribute ``height`` (float64, metres above ground).
 
     An already normalised cloud (:func:`is_normalized`) gets ``height = z *
-    vertical unit``.  Otherwise the ground is the class-2 points; when there
+    vertical unit`` unless ``trust_normalized`` is False (a terrestrial plot whose
+    ground happens to lie within half a metre of z = 0 still needs its ground).  Otherwise the ground is the class-2 points; when there
     are none and ``classify`` is a ground method (e.g. ``SMRF()``), the ground
     is classified first and those points get class 2 in the returned copy.
     ``cell_m``, ``tin_radius_m``: see :func:`height_above_ground`.
     """
     if len(cloud) == 0:
         raise EmptyInputError(f"{cloud.name}: no points to normalise")
-    if is_normalized(cloud):
+    if trust_normalized and is_normalized(cloud):
         return cloud.with_attrs(height=cloud.xyz[:, 2] * cloud.units.vertical_m)
     mask = ground_mask(cloud)
     extra = {}

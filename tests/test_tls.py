@@ -130,3 +130,27 @@ def test_ply_point_clouds_are_read(tmp_path):
         read_cloud(bad)
     with pytest.raises(InputError, match="file not found"):
         read_cloud(tmp_path / "missing.ply")
+
+
+def test_thick_stem_is_one_fitted_tube_not_parallel_thin_ones():
+    """A fully scanned 30 cm stem: one tube from circle fits carries it (the fine level's arcs of bark
+    used to become parallel thin tubes), so the model's surface stays near the points."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    truth, pts = _tree(seed=5)
+    dm = LevelSetQSM().model(TreePoints(1, pts, 0.0))
+    v, f = tube_mesh(dm.mesh_curves, dm.mesh_radii)
+    p2s = _surface_distance(pts, v, f).mean()
+    s, _ = trimesh.sample.sample_surface_even(trimesh.Trimesh(v, f, process=False), 50_000, seed=1)
+    s2p = cKDTree(pts).query(s)[0].mean()
+    assert p2s < 0.01 and s2p < 2 * p2s, (p2s, s2p)
+    # tubes crossing 1.5 m inside the stem: one
+    crossing = 0
+    for c, r in zip(dm.mesh_curves, dm.mesh_radii):
+        z = c[:, 2]
+        if len(c) >= 2 and z.min() <= 1.5 <= z.max():
+            k = int(np.clip(np.searchsorted(z, 1.5), 1, len(z) - 1)) if np.all(np.diff(z) > 0) else 0
+            if np.hypot(*c[k, :2]) < 0.1 and r.max() > 0.1:
+                crossing += 1
+    assert crossing == 1

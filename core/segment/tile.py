@@ -11,7 +11,8 @@ through either.  Steps:
    class-2 points, or SMRF (Pingel et al. 2013) when it has none, thinned to
    the lowest point per ``ground_cell_m`` cell, TIN triangles no wider than
    ``tin_radius_m`` (the pipeline passes half its buffer);
-3. the method segments the cloud and finds its own tree tops (its top search
+3. an automatic method (:class:`sylva.core.segment.stems.AutoSegmentation`) chooses on the
+   normalised cloud (stems for terrestrial plot scans); the method segments the cloud and finds its own tree tops (its top search
    is a field of the method, e.g. :class:`NormalizedCut`'s window, window
    points, apex rule and minimum height);
 4. the tops reported are each tree's highest point (a point of the cloud, so
@@ -34,12 +35,14 @@ __all__ = ["SegmentedTile", "segment_tile", "tree_tops_of"]
 class SegmentedTile:
     """``cloud``: the tile without noise, with ``height``; ``keep``: mask of those points in the
     input; ``labels``: int32 tree ID per point of ``cloud`` (0 = none); ``tops``:
-    :class:`sylva.core.tops.TreeTops` at each tree's highest point, ``tree_id`` = its label."""
+    :class:`sylva.core.tops.TreeTops` at each tree's highest point, ``tree_id`` = its label; ``method``:
+    the segmentation method that ran (an automatic method's choice)."""
 
     cloud: PointCloud
     keep: np.ndarray
     labels: np.ndarray
     tops: object
+    method: object = None
 
 
 def tree_tops_of(cloud: PointCloud, labels: np.ndarray):
@@ -68,7 +71,7 @@ def segment_tile(cloud: PointCloud, method=None, ground_cell_m: float = 0.5,
     from dataclasses import fields
 
     from ..noise import noise_mask
-    from ..terrain import SMRF, normalize
+    from ..terrain import SMRF, is_normalized, normalize
     from . import NormalizedCut, segment_trees
 
     method = NormalizedCut() if method is None else method
@@ -80,6 +83,14 @@ def segment_tile(cloud: PointCloud, method=None, ground_cell_m: float = 0.5,
                                  if f.name != "anchor"}, anchor=anchor)
     keep = ~noise_mask(cloud)
     report(progress, 0.0, "height above ground")
-    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m)
+    sub = cloud.subset(keep)
+    work = normalize(sub, classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m)
+    if hasattr(method, "resolve"):            # automatic choice (e.g. stems for a plot scan)
+        method = method.resolve(work)
+    if getattr(method, "exact_ground", False) and sub.attr("height") is None and is_normalized(sub):
+        # taken as normalised (z near 0): a method that measures at breast height needs the ground itself
+        # (Sylva: a synthetic plot sloping 5 % around z = 0 had heights off by up to 0.56 m)
+        work = normalize(sub, classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m,
+                         trust_normalized=False)
     labels = segment_trees(work, method, progress=scaled(progress, 0.1, 0.95), cancelled=cancelled)
-    return SegmentedTile(work, keep, labels, tree_tops_of(work, labels))
+    return SegmentedTile(work, keep, labels, tree_tops_of(work, labels), method)
