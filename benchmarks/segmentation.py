@@ -100,6 +100,7 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
         head += f"| {n:8s} {'n':>4s} {'P':>5s} {'R':>5s} {'F1':>5s} {'ptacc':>5s} {'<20':>4s} "
     print(head)
     f1s = {n: [] for n in names}
+    loss_rows = []
     for kind in kinds:
         for stand_name in stands:
             for density in densities:
@@ -118,7 +119,16 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
                         f1s[name].append((density, r["f1"]))
                         row += (f"| {'':8s} {r['n_detected']:4d} {r['precision']:.3f} {r['recall']:.3f} "
                                 f"{r['f1']:.3f} {r['point_accuracy']:.3f} {small:4.2f} ")
+                        if name == names[0]:
+                            loss_rows.append(f"   {kind:9s} {stand_name:6s} {density:4g} | FP {r['n_detected'] - round(r['precision'] * r['n_detected']):4d}: "
+                                             f"split {r['fp_split']:4d} offset {r['fp_offset']:4d} | FN {r['fn']:4d}: merged "
+                                             f"{r['fn_merged']:4d} overtopped {r['fn_overtopped']:4d}")
                 print(row, flush=True)
+    print(f"   where {names[0]} loses F1 (benchmarks/metrics.py losses: split = a piece of a matched crown, offset ="
+          " its crown's top missed by the matching, merged = inside another tree's segment, overtopped ="
+          " its apex under a neighbour's crown)")
+    for line in loss_rows:
+        print(line)
     for name, vals in f1s.items():
         lo = [f for d, f in vals if d < 5]
         hi = [f for d, f in vals if d >= 5]
@@ -128,21 +138,13 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
     print()
 
 
-def _picture(cloud, labels, path, title):
-    """PNG: the CHM (0.5 m, highest point per cell) in grey, each tree's crown outline in colour."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _draw(ax, xy, h, labels, title, cell=0.5):
+    """The CHM (``cell`` m, highest point per cell) in grey, each tree's crown outline and top in colour."""
     from shapely import MultiPoint
 
-    xy = cloud.local_xyz()[:, :2]
-    h = np.asarray(cloud.attrs["height"])
-    cell = 0.5
     ij = np.floor(xy / cell).astype(int)
     chm = np.zeros(tuple(ij.max(axis=0) + 1))
     np.maximum.at(chm, (ij[:, 0], ij[:, 1]), np.maximum(h, 0))
-    fig, ax = plt.subplots(figsize=(9, 9))
     ax.imshow(chm.T, origin="lower", cmap="gray", extent=(0, chm.shape[0] * cell, 0, chm.shape[1] * cell))
     rng = np.random.default_rng(0)
     ids = np.unique(labels[labels > 0])
@@ -158,6 +160,22 @@ def _picture(cloud, labels, path, title):
         top = np.argmax(np.where(labels == t, h, -np.inf))
         ax.plot(xy[top, 0], xy[top, 1], "+", color=c, ms=6)
     ax.set_title(f"{title}: {len(ids)} trees over the CHM (m)")
+
+
+def _picture(cloud, labels, path, title, reference=None, reference_title="reference"):
+    """PNG of the crowns over the CHM; with ``reference`` labels (per point of ``cloud``), the
+    reference's crowns in a second panel beside them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    xy = cloud.local_xyz()[:, :2]
+    h = np.asarray(cloud.attrs["height"])
+    panels = [(labels, title)] + ([] if reference is None else [(reference, reference_title)])
+    fig, axes = plt.subplots(1, len(panels), figsize=(9 * len(panels), 9), squeeze=False)
+    for ax, (lab, name) in zip(axes[0], panels):
+        _draw(ax, xy, h, np.asarray(lab), name)
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
 
@@ -185,7 +203,9 @@ def real_files(out_dir):
                  "intensity": np.asarray(las.intensity),
                  "return_number": np.asarray(las.return_number)}
         cloud = PointCloud(xyz, attrs=attrs, source=str(path))
-        ref = np.asarray(las["treeID"])
+        ref = np.asarray(las["treeID"], dtype=np.float64)
+        # lidR writes "no tree" (NA) as the extra-bytes no-data value (the largest double): not a tree
+        ref = np.where(np.isfinite(ref) & (ref > 0) & (ref < 2 ** 31), ref, 0).astype(np.int64)
         n_lidr = len(np.unique(ref[ref > 0]))
         print(f"   MixedConifer.laz: {len(cloud)} points; lidR treeID: {n_lidr} trees "
               f"(target: within 15 % of 205, median IoU >= 0.7, < 5 % under 20 points)")
@@ -201,7 +221,9 @@ def real_files(out_dir):
                   f"{len(ious):4d} of {n_ref}   median crown IoU {np.median(ious):.3f}   under 20 points "
                   f"{(counts < 20).mean():.1%}   smallest {counts.min()}   ({dt:.1f} s)", flush=True)
         tile = segment_tile(read_las(str(path)))
-        _picture(tile.cloud, tile.labels, out_dir / "MixedConifer.png", "MixedConifer.laz")
+        _picture(tile.cloud, tile.labels, out_dir / "MixedConifer.png", "MixedConifer.laz (Sylva)",
+                 reference=ref[tile.keep],
+                 reference_title="lidR treeID")
     else:
         print(f"   skipped: {path} not found")
     for name in ("autzen_trim.laz", "ahn3_delft.xyz"):
