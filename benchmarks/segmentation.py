@@ -8,14 +8,20 @@
 Prints, for every method side by side:
 
 1. detection precision / recall / F1 and point-level accuracy against the
-   synthetic truth of testing/synth, on open / medium / dense stands scanned at
-   5, 20 and 50 pulses/m2 (matching rule in benchmarks/metrics.py: tops
+   synthetic truth of testing/synth (conifers) and sylva/testing/crowns.py
+   (broadleaf and mixed), on open / medium / dense stands scanned at 2, 5, 20
+   and 50 pulses/m2 (matching rule in benchmarks/metrics.py: tops
    within 0.5 x the true crown radius, heights within 15 %, one-to-one by a
    Hungarian assignment; a segmented tree's top is its highest point);
-   each method finds its own tree tops with its default window;
+   each method finds its own tree tops with its default window; then, for
+   the default method, where the F1 is lost (metrics.losses: false positives
+   that are pieces of a matched crown or crowns whose top the matching
+   misses; misses inside another tree's segment, and misses whose apex is
+   under a neighbour's crown);
 2. on ../shared/data/als/MixedConifer.laz (heights already normalised): the
    number of trees and, for trees matched one-to-one to lidR's own treeID
-   labels, the median 2-D convex-hull crown IoU (skipped when absent);
+   labels, the median 2-D convex-hull crown IoU (skipped when absent), and a
+   picture of Sylva's crowns beside lidR's over the CHM;
    and the same detection scores as in 1. on the plugin's shipped sample
    (resources/sample/sample.laz against sample_trees.csv);
 3. throughput (points/s through the whole segment_trees verb: tops,
