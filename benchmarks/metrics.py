@@ -123,7 +123,74 @@ def evaluate(xyz, height, labels, truth_tree, trees) -> dict:
                       np.array([t.crown_radius_m for t in trees]))
     return {"precision": det.precision, "recall": det.recall, "f1": det.f1,
             "n_detected": det.n_detected, "n_true": det.n_true,
-            "point_accuracy": point_accuracy(labels, truth_tree, det.pairs)}
+            "point_accuracy": point_accuracy(labels, truth_tree, det.pairs),
+            **losses(xyz, height, labels, truth_tree, trees, det.pairs)}
+
+
+def _majority(a: np.ndarray, b: np.ndarray, size_a: int) -> np.ndarray:
+    """Per value of ``a`` (0..size_a-1): the most frequent ``b`` among its points (0: none; ties:
+    the lowest), over points with a > 0 and b > 0."""
+    sel = (a > 0) & (b > 0)
+    out = np.zeros(size_a, dtype=np.int64)
+    if not sel.any():
+        return out
+    pairs, counts = np.unique(np.column_stack([a[sel], b[sel]]), axis=0, return_counts=True)
+    order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+    pairs = pairs[order]
+    first = np.ones(len(pairs), dtype=bool)
+    first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+    out[pairs[first, 0]] = pairs[first, 1]
+    return out
+
+
+def losses(xyz, height, labels, truth_tree, trees, pairs, overtop_radius_m: float = 1.0) -> dict:
+    """Where the detection F1 is lost: the unmatched detected trees (false positives) and the
+    unmatched true trees (false negatives) by cause.
+
+    * ``fp_split``: the majority of its points belong to a true tree that is matched to another
+      detected tree (a piece of a crown: over-segmentation);
+    * ``fp_offset``: its majority true tree is unmatched (its top is too far from the stem or of
+      the wrong height: the crown is there, the top is not where the matching looks);
+    * ``fn_merged``: most of its points lie in a detected tree whose majority is another true
+      tree (under-segmentation);
+    * ``fn_overtopped``: its apex (highest point) has a point of another tree higher than it
+      within ``overtop_radius_m`` horizontally: it is under a neighbour's crown and no canopy-
+      surface top can find it (counted among fn_merged / the rest as well).
+    Sylva benchmark measure, not from a paper."""
+    labels = np.asarray(labels, dtype=np.int64)
+    truth_tree = np.asarray(truth_tree, dtype=np.int64)
+    size_d = int(labels.max(initial=0)) + 1
+    size_t = max(int(truth_tree.max(initial=0)), max((t.tree_id for t in trees), default=0)) + 1
+    maj_d = _majority(labels, truth_tree, size_d)      # detected tree -> its majority true tree
+    maj_t = _majority(truth_tree, labels, size_t)      # true tree -> the detected tree holding most of it
+    matched_d = np.zeros(size_d, dtype=bool)
+    matched_t = np.zeros(size_t, dtype=bool)
+    if len(pairs):
+        matched_d[pairs[:, 0]] = True
+        matched_t[pairs[:, 1]] = True
+    det = np.unique(labels[labels > 0])
+    un_d = det[~matched_d[det]]
+    fp_split = int(np.sum(matched_t[maj_d[un_d]] & (maj_d[un_d] > 0)))
+    true_ids = np.array([t.tree_id for t in trees], dtype=np.int64)
+    un_t = true_ids[~matched_t[true_ids]]
+    holder = maj_t[un_t]
+    fn_merged = int(np.sum((holder > 0) & (maj_d[holder] != un_t)))
+    # overtopped: a higher point of another tree within the radius of the tree's own apex
+    tree_pts = np.flatnonzero(truth_tree > 0)
+    order = tree_pts[np.lexsort((-height[tree_pts], truth_tree[tree_pts]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = truth_tree[order][1:] != truth_tree[order][:-1]
+    apex = np.full(size_t, -1, dtype=np.int64)
+    apex[truth_tree[order[first]]] = order[first]
+    fn_over = 0
+    cand = [t for t in un_t if apex[t] >= 0]
+    if cand:
+        tree = cKDTree(xyz[:, :2])
+        for t, near in zip(cand, tree.query_ball_point(xyz[apex[cand], :2], overtop_radius_m)):
+            near = np.asarray(near, dtype=np.int64)
+            fn_over += bool(np.any((height[near] > height[apex[t]] + 0.5) & (truth_tree[near] != t)))
+    return {"fp_split": fp_split, "fp_offset": int(len(un_d) - fp_split), "fn_merged": fn_merged,
+            "fn_overtopped": int(fn_over), "fn": int(len(un_t))}
 
 
 def crown_iou(xy: np.ndarray, labels_a: np.ndarray, labels_b: np.ndarray, min_points: int = 3):

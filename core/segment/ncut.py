@@ -247,7 +247,7 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
 
     def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
-                crown: np.ndarray):
+                crown: np.ndarray, density: np.ndarray = None):
         """(top window, apex window) diameters in metres, one per point of the cloud.
 
         Each is widened where the scan is sparse to hold ``top_window_points`` /
@@ -255,7 +255,8 @@ class NormalizedCut:
         around the point (:func:`local_canopy_density`: a neighbourhood of
         fixed size, never a statistic of the tile, so any tiling gives the same
         windows).  An apex window as wide as the top window adds nothing."""
-        density = local_canopy_density(cloud, local, crown)
+        if density is None:
+            density = local_canopy_density(cloud, local, crown)
         wide = np.full(len(local), float(self.top_window_m))
         if self.top_window_points > 0:
             wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
@@ -266,11 +267,11 @@ class NormalizedCut:
             apex = np.minimum(apex, wide)
         return wide, apex
 
-    def _find_tops(self, cloud, local, height, crown, progress, cancelled):
+    def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None):
         """Tree tops among the highest point of every TOP_CELL_M column (see step 3)."""
         from ..tops import FixedWindow, SteepApex, find_tree_tops
 
-        wide, apex = self.windows(cloud, local, height, crown)
+        wide, apex = self.windows(cloud, local, height, crown, density)
         sel = np.flatnonzero(crown)
         search = sel[_column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
         rule = None
@@ -297,9 +298,11 @@ class NormalizedCut:
         graph = voxel_graph(cloud, local, height, crown, self)
         check(cancelled)
         report(progress, 0.1, "finding tree tops")
+        # canopy first returns per m2 around every point (top windows, minimum tree size)
+        rho = local_canopy_density(cloud, local, crown)
         if tops is None and graph.n:
             tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
-                                   cancelled)
+                                   cancelled, rho)
         local_tops = resolve_tops(cloud, tops, self.min_height_m, self.top_window_m,
                                   scaled(progress, 0.1, 0.2), cancelled)
         check(cancelled)
@@ -307,7 +310,6 @@ class NormalizedCut:
             return labels
         top_voxel, top_id, top_height = _top_voxels(graph, local_tops, self)
         # the minimum size of a tree, in points, at the scan's density around its top
-        rho = local_canopy_density(cloud, local, crown)
         voxel_rho = np.zeros(graph.n)
         np.maximum.at(voxel_rho, graph.point_voxel, rho[crown])
         min_points = np.minimum(float(self.min_tree_points), MIN_TREE_AREA_M2 * voxel_rho[top_voxel])
@@ -1023,13 +1025,38 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 def _tops_of(xy, height, labels):
     """(ids, top xy, top height) of every label > 0: its highest point (ties: lowest x, then y,
-    never the point order, which depends on the tiling)."""
-    sel = np.flatnonzero(labels > 0)
-    order = sel[np.lexsort((xy[sel, 1], xy[sel, 0], -height[sel], labels[sel]))]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = labels[order][1:] != labels[order][:-1]
-    top = order[first]
+    then the first point; never the point order alone, which depends on the tiling).  One pass
+    (:func:`_label_maxima`), not a sort of every labelled point."""
+    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64),
+                        np.ascontiguousarray(height, dtype=np.float64),
+                        np.ascontiguousarray(labels, dtype=np.int64), int(labels.max(initial=0)) + 1)
     return labels[top], xy[top], height[top]
+
+
+@njit
+def _label_maxima(xy, h, labels, size):
+    """Ascending by label: the index of the highest point of every label > 0 (ties: lowest x,
+    then lowest y, then the lowest index), as a lexsort on (label, -h, x, y) picks it."""
+    best = np.full(size, -1, dtype=np.int64)
+    for i in range(len(labels)):
+        lab = labels[i]
+        if lab <= 0:
+            continue
+        b = best[lab]
+        if b < 0 or h[i] > h[b] or (h[i] == h[b] and (xy[i, 0] < xy[b, 0] or (
+                xy[i, 0] == xy[b, 0] and xy[i, 1] < xy[b, 1]))):
+            best[lab] = i
+    n = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            n += 1
+    out = np.empty(n, dtype=np.int64)
+    k = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            out[k] = best[lab]
+            k += 1
+    return out
 
 
 def _reassign(xy, height, labels, bad, tid, txy, th, reach, fallback):
