@@ -356,7 +356,8 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
         raise InputError("no readable tile: " + "; ".join(f["reason"] for f in failures))
     if options.chunk_size_m:
         report(progress, 0.0, f"cutting files wider than {options.chunk_size_m:g} m into chunks")
-        tiles = chunk_tiles(tiles, out / "parts" / "chunks", options.chunk_size_m, options.crs, cancelled)
+        tiles, uncut = chunk_tiles(tiles, out / "parts" / "chunks", options.chunk_size_m, options.crs, cancelled)
+        failures += uncut
     # two runs into one folder never mix: outputs of tiles that are not this run's go
     for name in sorted(_stale_names(out, {t.name for t in tiles})):
         remove_tile_outputs(out, name)

@@ -146,6 +146,30 @@ def test_damaged_tile_fails_alone_in_the_pipeline(damaged, corner, tmp_path):
     assert digests(tiles.iterdir()) == before and leftovers(out_dir) == []
 
 
+@pytest.mark.parametrize("case", ["laz_zeroed_20", "laz_zeroed_50", "laz_bounds_lie", "laz_count_slightly_low",
+                                  "laz_count_slightly_high"])
+def test_damaged_file_cut_into_chunks_fails_alone(damaged, corner, case, tmp_path):
+    """CHUNK_SIZE_M cuts a large file by copying its records: the cut makes every check a read makes, and a
+    damaged file is one failed tile (the others go on; nothing of its cut stays)."""
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    good = sorted(corner.glob("*.laz"))[0]
+    (tiles / good.name).write_bytes(good.read_bytes())
+    (tiles / f"{case}.laz").write_bytes(damaged[case][0].read_bytes())
+    before = digests(tiles.iterdir())
+    out_dir = tmp_path / "out"
+    out = sylva("pipeline", f"--INPUT={tiles}", "--RECONSTRUCT=false", "--CHUNK_SIZE_M=50",
+                f"--OUTPUT_FOLDER={out_dir}")
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    report = json.loads((out_dir / "report.json").read_text())
+    assert [f["name"] for f in report["failures"]] == [case] and report["failures"][0]["attempts"] == 1
+    assert f"{case}.laz" in report["failures"][0]["reason"]
+    assert any(w in report["failures"][0]["reason"] for w in ("damaged", "truncated"))
+    assert [t["name"] for t in report["tiles"]] == [good.stem]
+    assert not (out_dir / "parts" / "chunks").exists()
+    assert digests(tiles.iterdir()) == before and leftovers(out_dir) == []
+
+
 def test_every_tile_failing_exits_non_zero(damaged, tmp_path):
     tiles = tmp_path / "tiles"
     tiles.mkdir()

@@ -16,14 +16,15 @@ from __future__ import annotations
 
 import copy
 import math
+import shutil
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
 from ..atomic import move_into_place, temporary_beside
-from ..errors import InputError
-from ..progress import CancelCheck, check
+from ..errors import InputError, ParameterError
+from ..progress import CancelCheck
 from .tiles import Tile, file_checksum
 
 #: Points read from the source at a time while cutting it (bounds the memory of the cut).
@@ -50,11 +51,13 @@ def cut_into_chunks(tile: Tile, folder, chunk_m: float, crs=None, cancelled: Can
     """
     import laspy
 
+    from .las import checked_records
+
     size = chunk_m / tile.metres_per_unit
     xmin, ymin, xmax, ymax = tile.bounds
     cells = (math.floor(xmax / size) - math.floor(xmin / size) + 1) * (math.floor(ymax / size) - math.floor(ymin / size) + 1)
     if cells > MAX_CHUNKS:
-        raise InputError(f"CHUNK_SIZE_M={chunk_m:g}: {tile.path} would be cut into {cells} chunks (at most "
+        raise ParameterError(f"CHUNK_SIZE_M={chunk_m:g}: {tile.path} would be cut into {cells} chunks (at most "
                          f"{MAX_CHUNKS}); choose larger chunks")
     folder = Path(folder) / f"{tile.name}-{file_checksum(tile.path)[:16]}-{chunk_m:g}m"
     folder.mkdir(parents=True, exist_ok=True)
@@ -66,30 +69,29 @@ def cut_into_chunks(tile: Tile, folder, chunk_m: float, crs=None, cancelled: Can
     writers: Dict[Tuple[int, int], object] = {}   # one open writer per chunk: the file is read once
     temporary: Dict[Tuple[int, int], Path] = {}
     try:
-        with laspy.open(tile.path) as reader:
-            header = reader.header
-            for points in reader.chunk_iterator(READ_POINTS):
-                check(cancelled)
-                ix = np.floor(np.asarray(points.x) / size).astype(np.int64)
-                iy = np.floor(np.asarray(points.y) / size).astype(np.int64)
-                keys = np.stack([ix, iy], axis=1)
-                cells, inverse = np.unique(keys, axis=0, return_inverse=True)
-                inverse = inverse.reshape(-1)
-                order = np.argsort(inverse, kind="stable")
-                starts = np.searchsorted(inverse[order], np.arange(len(cells) + 1))
-                for c, (i, j) in enumerate(cells.tolist()):
-                    key = (int(i), int(j))
-                    if key not in writers:
-                        temporary[key] = temporary_beside(folder / f"{tile.name}_{i}_{j}.las")
-                        chunk_header = copy.deepcopy(header)
-                        chunk_header.point_count = 0
-                        writers[key] = laspy.open(temporary[key], mode="w", header=chunk_header, do_compress=False)
-                    writers[key].write_points(points[order[starts[c]:starts[c + 1]]])
+        header, records = checked_records(tile.path, READ_POINTS, cancelled)   # a damaged file fails here
+        for points in records:
+            ix = np.floor(np.asarray(points.x) / size).astype(np.int64)
+            iy = np.floor(np.asarray(points.y) / size).astype(np.int64)
+            keys = np.stack([ix, iy], axis=1)
+            cells, inverse = np.unique(keys, axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
+            order = np.argsort(inverse, kind="stable")
+            starts = np.searchsorted(inverse[order], np.arange(len(cells) + 1))
+            for c, (i, j) in enumerate(cells.tolist()):
+                key = (int(i), int(j))
+                if key not in writers:
+                    temporary[key] = temporary_beside(folder / f"{tile.name}_{i}_{j}.las")
+                    chunk_header = copy.deepcopy(header)
+                    chunk_header.point_count = 0
+                    writers[key] = laspy.open(temporary[key], mode="w", header=chunk_header, do_compress=False)
+                writers[key].write_points(points[order[starts[c]:starts[c + 1]]])
     except BaseException:
         for w in writers.values():
             w.close()
         for t in temporary.values():
             t.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)      # nothing of a failed cut stays
         raise
     for w in writers.values():
         w.close()
@@ -115,9 +117,20 @@ def _as_tiles(paths: Sequence[Path], source: Tile, crs) -> List[Tile]:
     return tiles
 
 
-def chunk_tiles(tiles: Sequence[Tile], folder, chunk_m: float, crs=None, cancelled: CancelCheck = None) -> List[Tile]:
-    """``tiles`` with every tile wider than one chunk replaced by its chunks (see :func:`cut_into_chunks`)."""
-    out = []
+def chunk_tiles(tiles: Sequence[Tile], folder, chunk_m: float, crs=None,
+                cancelled: CancelCheck = None) -> Tuple[List[Tile], List[dict]]:
+    """``(tiles, failures)``: ``tiles`` with every tile wider than one chunk replaced by its chunks (see
+    :func:`cut_into_chunks`); a file that cannot be cut (damaged, unreadable) is a failure of its own, as
+    a tile that fails is, and the other files go on."""
+    out, failures = [], []
     for t in tiles:
-        out.extend(cut_into_chunks(t, folder, chunk_m, crs, cancelled) if needs_chunks(t, chunk_m) else [t])
-    return out
+        if not needs_chunks(t, chunk_m):
+            out.append(t)
+            continue
+        try:
+            out.extend(cut_into_chunks(t, folder, chunk_m, crs, cancelled))
+        except ParameterError:                  # the chunk size, not the file: the run stops
+            raise
+        except InputError as err:
+            failures.append({"name": t.name, "path": t.path, "status": "failed", "reason": str(err), "attempts": 1})
+    return out, failures

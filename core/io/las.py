@@ -37,6 +37,7 @@ __all__ = [
     "LasInfo",
     "read_las",
     "read_las_chunks",
+    "checked_records",
     "las_info",
     "write_las",
     "require_crs",
@@ -547,9 +548,28 @@ def read_las_chunks(path, chunk_size: int = 1_000_000, crs=None, *,
 
 
 def _chunks(reader, path, chunk_size, crs, units, parsed, progress, cancelled):
+    header = reader.header
+    total = max(1, header.point_count)
+    done = 0
+    for record in _checked_records(reader, path, chunk_size, cancelled):
+        done += len(record)
+        yield _cloud_from_array(record.array, header, crs, units, str(path), parsed)
+        report(progress, done / total, f"read {done} of {header.point_count} points")
+
+
+def checked_records(path, chunk_size: int = 1_000_000, cancelled: CancelCheck = None):
+    """``(header, records)``: the file's laspy header and an iterator over its point records (laspy's
+    ``ScaleAwarePointRecord``, at most ``chunk_size`` at a time), with every check :func:`read_las` makes
+    (truncation, chunk table, bounds, point count, decode errors: one :class:`InputError` naming the
+    file).  For code that copies records unchanged (``sylva.core.io.chunks``)."""
+    path = _check_file(path)
+    reader = _open(path)
+    return reader.header, _checked_records(reader, path, int(chunk_size), cancelled)
+
+
+def _checked_records(reader, path, chunk_size, cancelled):
     with reader:
         header = reader.header
-        total = max(1, header.point_count)
         done = 0
         iterator = reader.chunk_iterator(chunk_size)
         while True:
@@ -566,8 +586,7 @@ def _chunks(reader, path, chunk_size, crs, units, parsed, progress, cancelled):
             _check_bounds(path, record.array, header)
             if done >= header.point_count:
                 _check_no_more_points(reader, path, header)
-            yield _cloud_from_array(record.array, header, crs, units, str(path), parsed)
-            report(progress, done / total, f"read {done} of {header.point_count} points")
+            yield record
         if done != header.point_count:
             raise InputError(f"{path}: the file is truncated ({done} of "
                              f"{header.point_count} points could be read)")
