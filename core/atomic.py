@@ -65,3 +65,15 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     with atomic_open(path) as fh:
         fh.write(data)
     return Path(path)
+
+
+def atomic_save_npz(path, **arrays) -> Path:
+    """``np.savez`` to ``path`` atomically.  The archive is built in memory first: numpy's zip writer,
+    failing half-way (a full disk), would leave a zip object whose clean-up prints a traceback."""
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return atomic_write_bytes(path, buf.getvalue())

@@ -42,7 +42,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .atomic import atomic_path, atomic_write_bytes
+from .atomic import atomic_save_npz, atomic_write_bytes
 from .engine import apply
 from .errors import Cancelled, InputError, OutputError, ParameterError, SylvaError, disk_error
 from .export.tiles3d import write_root_tileset
@@ -71,8 +71,23 @@ def make_jobs(tiles: Sequence[Tile], out_dir, options: PipelineOptions) -> List[
     return jobs
 
 
-def _failure(job: TileJob, err: BaseException) -> dict:
-    reason = str(err) if isinstance(err, SylvaError) else f"{type(err).__name__}: {err}"
+#: Free bytes below which a tile's write error is put down to a full disk (SQLite, for one, reports a
+#: full disk met half-way through a page as "database disk image is malformed").
+FULL_DISK_BYTES = 16 * 2**20
+
+
+def _failure(job: TileJob, err: BaseException, out: Path) -> dict:
+    if isinstance(err, SylvaError):
+        reason = str(err)
+    elif isinstance(err, OSError) and err.errno is not None:
+        reason = str(disk_error(err.filename or out, err))
+    else:
+        reason = f"{type(err).__name__}: {err}"
+        try:
+            if shutil.disk_usage(out).free < FULL_DISK_BYTES:
+                reason = f"{out}: cannot write (the disk is full): {reason}"
+        except OSError:
+            pass
     return {"name": job.name, "path": job.path, "status": "failed", "reason": reason, "attempts": job.attempt}
 
 
@@ -307,8 +322,12 @@ class RunLock:
                     f"{holder.get('pid')} on {holder.get('host')}, started {holder.get('started')}); "
                     f"wait for it to end or choose another OUTPUT_FOLDER (if that run is gone, "
                     f"remove {self.path})")
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
+            try:
+                with os.fdopen(fd, "wb") as fh:
+                    fh.write(data)
+            except OSError as err:                      # a full disk: no empty lock stays behind
+                self.path.unlink(missing_ok=True)
+                raise disk_error(self.path, err) from None
             self.held = True
             return self
         raise OutputError(f"{self.path}: cannot take the run lock of this folder")
@@ -390,7 +409,7 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
                     raise err
                 if job.attempt < 2:
                     return replace(job, attempt=job.attempt + 1)
-                failures.append(_failure(job, err))
+                failures.append(_failure(job, err, out))
                 remove_tile_outputs(out, job.name)   # no stale LAZ/GLB of an earlier run stays beside the report
                 merger.ready(job.name, None)
             else:
@@ -417,9 +436,7 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
             z = dict(np.load(ids_path))
             for k in ("owned_ids", "seen_ids"):
                 z[k] = np.array([mapping.get(int(v), int(v)) for v in z[k]], dtype=np.int64)
-            with atomic_path(ids_path) as tmp:
-                with open(tmp, "wb") as fh:
-                    np.savez(fh, **z)
+            atomic_save_npz(ids_path, **z)
         gpkg = merger.commit()
     for scratch in ("halo", "chunks"):   # scratch: a rerun makes what it needs (the same bytes)
         shutil.rmtree(out / "parts" / scratch, ignore_errors=True)

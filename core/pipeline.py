@@ -148,16 +148,14 @@ def _halo_mask(cloud: PointCloud, bounds, pad: float) -> np.ndarray:
 
 def write_halo(path: Path, clouds) -> None:
     """Save the edge-ring points ``clouds`` (PointClouds of one file) atomically as an uncompressed .npz."""
-    from .atomic import atomic_path
+    from .atomic import atomic_save_npz
 
     clouds = [c for c in clouds if len(c)]
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"xyz": np.concatenate([c.xyz for c in clouds]) if clouds else np.zeros((0, 3))}
     for name in (clouds[0].attrs if clouds else ()):
         arrays[f"attr:{name}"] = np.concatenate([np.asarray(c.attrs[name]) for c in clouds])
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    atomic_save_npz(path, **arrays)
 
 
 def read_halo(path: Path, like: PointCloud) -> Optional[PointCloud]:
@@ -373,7 +371,7 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     warnings, files.  Raises :class:`SylvaError` (or anything) on failure; the
     catalog retries once and reports.
     """
-    from .atomic import atomic_path, atomic_write_bytes
+    from .atomic import atomic_save_npz, atomic_write_bytes
     from .io.gpkg import write_gpkg
     from .io.las import write_las
     from .measure import CrownBase, tree_metrics
@@ -482,9 +480,8 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
     write_gpkg(paths["gpkg"], tables)
     # IDs written (for the run-wide collision check): owned trees and every ID in the LAS
     seen = np.isin(gids, present) | owned
-    with atomic_path(paths["ids"]) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, owned_keys=keys[owned], owned_ids=gids[owned], seen_keys=keys[seen], seen_ids=gids[seen])
+    atomic_save_npz(paths["ids"], owned_keys=keys[owned], owned_ids=gids[owned], seen_keys=keys[seen],
+                    seen_ids=gids[seen])
     seconds = time.perf_counter() - t0
     record = {
         "name": job.name, "index": job.index, "path": job.path, "status": "done", "attempts": job.attempt,

@@ -355,6 +355,26 @@ def test_full_disk_reconstruct_and_export(tiny_disk, models_of_corner):
     assert digests([seg, glb]) == before
 
 
+@pytest.mark.parametrize("free_kb", [0, 1024])
+def test_full_disk_pipeline(tmp_path, corner, free_kb):
+    """A disk full from the start (the run lock cannot be written) or filling up during the run: one line
+    saying the disk is full, exit 1, and nothing but the filler and the run's report left (no empty lock,
+    no parts)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here (not root?)")
+    try:
+        free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
+        (disk / "filler").write_bytes(bytes(max(free - free_kb * 1024, 0)))
+        out = sylva("pipeline", f"--INPUT={corner}", "--RECONSTRUCT=false", f"--OUTPUT_FOLDER={disk / 'out'}")
+        one_line_error(out, "disk is full")
+        left = [p for p in disk.rglob("*") if p.is_file() and p.name not in ("filler", "report.txt", "report.json")]
+        assert left == [], left      # the report the error line names may stay; nothing else
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
 # --------------------------------------------------------------------------- signals, RESUME, locks
 
 def _start_pipeline(inputs, out_dir, *extra):
