@@ -333,8 +333,9 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
 def run() -> None:
     """The process entry point (the ``sylva`` command and ``python -m sylva.cli``): exit with main()'s code.
 
-    Once main() has returned, Ctrl-C is ignored, so that a signal arriving while Python shuts down
-    cannot turn exit code 130 into death by SIGINT (which Python does for an escaping KeyboardInterrupt).
+    Once main() has returned, Ctrl-C and SIGTERM are ignored: the outputs are complete (or rolled back), and
+    a signal arriving while Python shuts down must not turn main()'s exit code into death by that signal
+    (which Python does for an escaping KeyboardInterrupt).
     """
     import signal
 
@@ -343,6 +344,7 @@ def run() -> None:
     except KeyboardInterrupt:  # between the handlers' restoration and here
         code = 130
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if code in (130, 143):
         _forget_unhandled_interrupt()
     sys.exit(code)
