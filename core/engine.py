@@ -163,7 +163,9 @@ def connect_scheduler(address: str, timeout_s: Optional[float] = None):
     scheduler (or a worker) one does not control can run any code in this process.  Only
     addresses written out with an explicit tcp:// or tls:// scheme are accepted (no inproc://,
     ucx:// or a bare host name that dask would complete), and the connection times out instead
-    of hanging (Sylva, not in the papers).
+    of hanging (Sylva, not in the papers).  Restricting the client's deserializers to dask's
+    pickle-free families does not close the hole: the client still unpickles the exceptions and
+    tracebacks workers report (distributed 2026.8.0), so it is not done.
     """
     try:
         from distributed import Client
