@@ -12,8 +12,10 @@ import hashlib
 import json
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -292,6 +294,17 @@ def test_tiles_in_different_crss_are_refused(tmp_path, sample_laz):
     line = one_line_error(out, "one CRS", "CRS parameter")
     assert sum(p.name in line for p in paths) == 2   # the two odd tiles are named
     assert digests(paths) == before and not (tmp_path / "out" / "forest.gpkg").exists()
+    # an explicit CRS: every tile is read in it (the user says the tags are wrong), and the layers carry it
+    out = sylva("pipeline", f"--INPUT={tmp_path / 'mixed'}", "--CRS=EPSG:26912", "--RECONSTRUCT=false",
+                f"--OUTPUT_FOLDER={tmp_path / 'out'}")
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert len(report["tiles"]) == 3 and report["failures"] == []
+    with sqlite3.connect(tmp_path / "out" / "forest.gpkg") as db:
+        codes = {c for (c,) in db.execute("SELECT DISTINCT s.organization_coordsys_id FROM gpkg_geometry_columns g "
+                                          "JOIN gpkg_spatial_ref_sys s ON s.srs_id = g.srs_id")}
+    assert codes == {26912}
+    assert digests(paths) == before
 
 
 def test_the_same_crs_written_two_ways_is_one_crs(tmp_path, sample_laz):
@@ -509,6 +522,26 @@ def test_ctrl_c_during_start_up_is_one_line(sample_laz, tmp_path):
     assert not (tmp_path / "seg.laz").exists() and leftovers(tmp_path) == []
 
 
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "cancelled"), (signal.SIGTERM, 143, "terminated")])
+def test_signal_mid_run_of_one_algorithm(sample_laz, tmp_path, sig, code, word):
+    """Ctrl-C or SIGTERM while segmenttrees computes: one line, its exit code, no output and no .part file."""
+    proc = subprocess.Popen([sys.executable, "-m", "sylva.cli", "segmenttrees", f"--INPUT={sample_laz}",
+                             f"--OUTPUT={tmp_path / 'seg.laz'}", f"--TREES={tmp_path / 'trees.gpkg'}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    # the signal as soon as the computation reports its first step (the run takes a few seconds more)
+    assert _wait_for(lambda: any("height above ground" in ln for ln in lines), proc, timeout=120), lines
+    proc.send_signal(sig)
+    proc.wait(timeout=120)
+    reader.join(timeout=10)
+    err = "".join(lines)
+    assert proc.returncode == code, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].endswith(word), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_omitted_outputs_leave_no_temporary_folder(corner, tmp_path):
     private = tmp_path / "tmp"      # the command's own TMPDIR: other programs share /tmp
     private.mkdir()
@@ -532,6 +565,11 @@ def test_outputs_follow_the_umask(corner, tmp_path):
     out = sylva("canopyheightmodel", f"--INPUT={tile}", "--PIT_FREE=false", f"--OUTPUT={tmp_path / 'chm2.tif'}",
                 umask=0o007)
     assert (tmp_path / "chm2.tif").stat().st_mode & 0o777 == 0o660
+    out = sylva("segmenttrees", f"--INPUT={tile}", f"--OUTPUT={tmp_path / 'seg.laz'}",
+                f"--TREES={tmp_path / 'trees.gpkg'}", umask=0o027)
+    assert out.returncode == 0, out.stderr
+    for name in ("seg.laz", "trees.gpkg"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
 
 
 def test_lidr_float_tree_id_no_tree_reads_as_zero(tmp_path):
