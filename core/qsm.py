@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 
 from .atomic import atomic_open
 from .errors import InputError
+from .circles import arc_sectors, fit_circles
 from .measure import DbhRule, fit_stem_circle
 from .table import VectorTable
 
@@ -272,41 +273,9 @@ def refit_radii(points: np.ndarray, cyl: dict, min_points: int = 12, min_arc_deg
     p, j, a = p[ok], j[ok], a[ok]
     x, y = (p * e1[j]).sum(axis=1), (p * e2[j]).sum(axis=1)
     cnt = np.bincount(j, minlength=n).astype(np.float64)
-    sector = (np.floor((np.arctan2(y, x) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
-    occupied = np.bincount(j * 12 + sector, minlength=12 * n).reshape(n, 12) > 0
-    arc = occupied.sum(axis=1) * 30.0
-    # Kasa: x^2 + y^2 = 2 a x + 2 b y + c, normal equations per cylinder
-    z = x * x + y * y
-    cols = (x, y, np.ones_like(x))
-    ata = np.empty((n, 3, 3))
-    atb = np.empty((n, 3))
-    for i in range(3):
-        atb[:, i] = np.bincount(j, weights=cols[i] * z, minlength=n)
-        for k2 in range(i, 3):
-            ata[:, i, k2] = ata[:, k2, i] = np.bincount(j, weights=cols[i] * cols[k2], minlength=n)
+    arc = arc_sectors(x, y, j, n)                      # seen from the axis
     good = (cnt >= max(min_points, 3)) & (arc >= min_arc_deg)
-    good &= np.abs(np.linalg.det(ata + np.eye(3) * 1e-12)) > 1e-30
-    sol = np.zeros((n, 3))
-    if good.any():
-        sol[good] = np.linalg.solve(ata[good] + np.eye(3) * 1e-12, atb[good][..., None])[..., 0]
-    cx, cy = sol[:, 0] / 2, sol[:, 1] / 2
-    r = np.sqrt(np.maximum(sol[:, 2] + cx ** 2 + cy ** 2, 0.0))
-    for _ in range(max(0, int(iterations))):   # Gauss-Newton on sum (|p - c| - r)^2
-        dx, dy = x - cx[j], y - cy[j]
-        dist = np.maximum(np.hypot(dx, dy), 1e-12)
-        jr = (-dx / dist, -dy / dist, -np.ones_like(dist))
-        res = dist - r[j]
-        jtj = np.empty((n, 3, 3))
-        jtr = np.empty((n, 3))
-        for i in range(3):
-            jtr[:, i] = np.bincount(j, weights=jr[i] * res, minlength=n)
-            for k2 in range(i, 3):
-                jtj[:, i, k2] = jtj[:, k2, i] = np.bincount(j, weights=jr[i] * jr[k2], minlength=n)
-        g2 = good & (np.abs(np.linalg.det(jtj + np.eye(3) * 1e-12)) > 1e-30)
-        step = np.zeros((n, 3))
-        if g2.any():
-            step[g2] = -np.linalg.solve(jtj[g2] + np.eye(3) * 1e-12, jtr[g2][..., None])[..., 0]
-        cx, cy, r = cx + step[:, 0], cy + step[:, 1], r + step[:, 2]
+    cx, cy, r, _, _ = fit_circles(x, y, j, n, iterations=iterations, fit=good)
     good &= np.isfinite(r) & (r > 0) & (r <= max_change * r0) & (r >= r0 / max_change)
     good &= np.hypot(cx, cy) <= np.maximum(r0, r)       # the fitted axis stays inside the cylinder
     # no circle: a thin or sparsely scanned branch, whose points scatter about its centre line

@@ -54,6 +54,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..circles import arc_sectors, fit_circles
 from ..errors import InputError
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
@@ -396,46 +397,9 @@ def _fit_sections(pts, lab, centroid, axis, m, min_arc_deg, iterations=6):
     rho = np.hypot(x, y)
     cnt = np.bincount(lab, minlength=m).astype(np.float64)
     med = _group_median(rho, lab, m)
-    # arc coverage around the centroid, 30° sectors
-    sector = (np.floor((np.arctan2(y, x) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
-    occ = np.bincount(lab * 12 + sector, minlength=12 * m).reshape(m, 12) > 0
-    z = x * x + y * y
-    cols = (x, y, np.ones_like(x))
-    ata = np.empty((m, 3, 3))
-    atb = np.empty((m, 3))
-    for i in range(3):
-        atb[:, i] = np.bincount(lab, weights=cols[i] * z, minlength=m)
-        for j in range(i, 3):
-            ata[:, i, j] = ata[:, j, i] = np.bincount(lab, weights=cols[i] * cols[j], minlength=m)
-    good = (cnt >= 8) & (occ.sum(1) * 30 >= 90)
-    good &= np.abs(np.linalg.det(ata)) > 1e-24
-    sol = np.zeros((m, 3))
-    if good.any():
-        sol[good] = np.linalg.solve(ata[good], atb[good][..., None])[..., 0]
-    cx, cy = sol[:, 0] / 2, sol[:, 1] / 2
-    r = np.sqrt(np.maximum(sol[:, 2] + cx ** 2 + cy ** 2, 0.0))
-    for _ in range(iterations):
-        dx, dy = x - cx[lab], y - cy[lab]
-        dd = np.maximum(np.hypot(dx, dy), 1e-12)
-        jr = (-dx / dd, -dy / dd, -np.ones_like(dd))
-        res = dd - r[lab]
-        jtj = np.empty((m, 3, 3))
-        jtr = np.empty((m, 3))
-        for i in range(3):
-            jtr[:, i] = np.bincount(lab, weights=jr[i] * res, minlength=m)
-            for j in range(i, 3):
-                jtj[:, i, j] = jtj[:, j, i] = np.bincount(lab, weights=jr[i] * jr[j], minlength=m)
-        g2 = good & (np.abs(np.linalg.det(jtj)) > 1e-24)
-        step = np.zeros((m, 3))
-        if g2.any():
-            step[g2] = -np.linalg.solve(jtj[g2], jtr[g2][..., None])[..., 0]
-        cx, cy, r = cx + step[:, 0], cy + step[:, 1], r + step[:, 2]
-    # the arc the points cover seen from the fitted centre, and the fit's residual
-    dx, dy = x - cx[lab], y - cy[lab]
-    res = np.abs(np.hypot(dx, dy) - r[lab])
-    rms = np.sqrt(np.bincount(lab, weights=res ** 2, minlength=m) / np.maximum(cnt, 1))
-    sec2 = (np.floor((np.arctan2(dy, dx) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
-    arc = (np.bincount(lab * 12 + sec2, minlength=12 * m).reshape(m, 12) > 0).sum(1) * 30.0
+    good = (cnt >= 8) & (arc_sectors(x, y, lab, m) >= 90)     # arc coverage around the centroid
+    # the fit, its residual and the arc the points cover seen from the fitted centre
+    cx, cy, r, rms, arc = fit_circles(x, y, lab, m, iterations=iterations, fit=good)
     spread = np.zeros(m)
     np.maximum.at(spread, lab, rho)
     good &= np.isfinite(r) & (r > 0) & (arc >= min_arc_deg) & (rms <= 0.25 * r + 0.005)

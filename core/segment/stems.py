@@ -53,11 +53,12 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ..circles import fit_circles
 from ..cloud import PointCloud
 from ..errors import InputError
 from ..progress import CancelCheck, Progress, check, report
 
-__all__ = ["AutoSegmentation", "StemSegmentation", "Stems", "detect_stems", "fit_circles", "ground_under_canopy",
+__all__ = ["AutoSegmentation", "StemSegmentation", "Stems", "detect_stems", "ground_under_canopy",
            "is_plot_scan"]
 
 
@@ -307,52 +308,6 @@ def detect_stems(xyz: np.ndarray, height: np.ndarray, opt: StemSegmentation = St
     idx = np.concatenate([f[4] for f in found])
     tid = np.concatenate([np.full(len(f[4]), i + 1, dtype=np.int32) for i, f in enumerate(found)])
     return stems, idx, tid
-
-
-def fit_circles(x: np.ndarray, y: np.ndarray, g: np.ndarray, m: int, iterations: int = 6):
-    """Least-squares circles of ``m`` groups of 2-D points at once (Kåsa's algebraic fit refined by
-    Gauss-Newton steps): (cx, cy, r, rms residual, arc covered in degrees, 30° sectors) per group; NaN
-    where a group has fewer than 3 points or a degenerate fit."""
-    cnt = np.bincount(g, minlength=m).astype(np.float64)
-    mx = np.bincount(g, weights=x, minlength=m) / np.maximum(cnt, 1)
-    my = np.bincount(g, weights=y, minlength=m) / np.maximum(cnt, 1)
-    u, v = x - mx[g], y - my[g]
-    zz = u * u + v * v
-    cols = (u, v, np.ones_like(u))
-    ata, atb = np.zeros((m, 3, 3)), np.zeros((m, 3))
-    for i in range(3):
-        atb[:, i] = np.bincount(g, weights=cols[i] * zz, minlength=m)
-        for j in range(i, 3):
-            ata[:, i, j] = ata[:, j, i] = np.bincount(g, weights=cols[i] * cols[j], minlength=m)
-    ok = (cnt >= 3) & (np.abs(np.linalg.det(ata)) > 1e-24)
-    sol = np.zeros((m, 3))
-    if ok.any():
-        sol[ok] = np.linalg.solve(ata[ok], atb[ok][..., None])[..., 0]
-    a, b = sol[:, 0] / 2, sol[:, 1] / 2
-    r = np.sqrt(np.maximum(sol[:, 2] + a * a + b * b, 0.0))
-    for _ in range(iterations):
-        dx, dy = u - a[g], v - b[g]
-        dd = np.maximum(np.hypot(dx, dy), 1e-12)
-        jr = (-dx / dd, -dy / dd, -np.ones_like(dd))
-        res = dd - r[g]
-        jtj, jtr = np.zeros((m, 3, 3)), np.zeros((m, 3))
-        for i in range(3):
-            jtr[:, i] = np.bincount(g, weights=jr[i] * res, minlength=m)
-            for j in range(i, 3):
-                jtj[:, i, j] = jtj[:, j, i] = np.bincount(g, weights=jr[i] * jr[j], minlength=m)
-        o2 = ok & (np.abs(np.linalg.det(jtj)) > 1e-24)
-        step = np.zeros((m, 3))
-        if o2.any():
-            step[o2] = -np.linalg.solve(jtj[o2], jtr[o2][..., None])[..., 0]
-        a, b, r = a + step[:, 0], b + step[:, 1], r + step[:, 2]
-    dx, dy = u - a[g], v - b[g]
-    res = np.hypot(dx, dy) - r[g]
-    rms = np.sqrt(np.bincount(g, weights=res ** 2, minlength=m) / np.maximum(cnt, 1))
-    sector = (np.floor((np.arctan2(dy, dx) + np.pi) / (np.pi / 6)).astype(np.int64)) % 12
-    arc = (np.bincount(g * 12 + sector, minlength=12 * m).reshape(m, 12) > 0).sum(1) * 30.0
-    ok &= np.isfinite(r) & (r > 0)
-    nan = np.where(ok, 1.0, np.nan)
-    return (a + mx) * nan, (b + my) * nan, r * nan, rms * nan, arc
 
 
 def ground_under_canopy(xyz: np.ndarray, cell_m: float = 0.5, step_m: float = 0.3) -> np.ndarray:
