@@ -37,7 +37,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .cloud import PointCloud
+from .cloud import ANCHOR_GRID_M, PointCloud
 from .errors import EmptyInputError, InputError
 from .jit import njit
 from .progress import CancelCheck, Progress, check, report
@@ -333,13 +333,21 @@ def _shadowed(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, others: np.ndarra
     return out
 
 
+def steep_column_m(inner_m: float) -> float:
+    """The widest column no wider than ``inner_m`` that divides :data:`~sylva.core.cloud.ANCHOR_GRID_M`
+    (0.3 m gives 70/234 = 0.2991 m): in an anchored local frame its columns are the same in every tile."""
+    return ANCHOR_GRID_M / np.ceil(ANCHOR_GRID_M / inner_m - 1e-9)
+
+
 def _steep(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, rule: SteepApex) -> np.ndarray:
     """Mask of the candidates (indices into xy/h) the canopy falls away from steeply."""
     if len(cand) == 0:
         return np.zeros(0, dtype=bool)
     nsec = 8
-    # the canopy surface: the highest point of every inner_m column
-    key = np.floor((xy - xy.min(axis=0)) / rule.inner_m).astype(np.int64)
+    # the canopy surface: the highest point of every column, columns as wide as inner_m or a little less,
+    # so that they divide the anchor grid and fall on the same places whatever the tile (Sylva)
+    key = np.floor(xy / steep_column_m(rule.inner_m)).astype(np.int64)
+    key -= key.min(axis=0)
     key = key[:, 0] * (int(key[:, 1].max()) + 1) + key[:, 1]
     order = np.argsort(-h, kind="stable")
     _, first = np.unique(key[order], return_index=True)

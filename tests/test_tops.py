@@ -305,3 +305,22 @@ def test_cell_maxima_kernel_runs_as_python():
 
     xy, h = quantised_canopy(n=500)
     assert np.array_equal(_cell_maxima_kernel.py_func(xy, h, 1.06, 10000), _cell_maxima_kernel(xy, h, 1.06, 10000))
+
+
+def test_steep_apex_columns_do_not_depend_on_the_tile_extent():
+    """The canopy surface the apex rule measures against is a grid of columns of the anchored local
+    frame: points far away (another tile's extent) do not move the columns, so the rule keeps the same
+    candidates (before, the columns started at the tile's lowest x and y: tiling changed the tops)."""
+    from sylva.core.tops import _steep, steep_column_m
+
+    assert steep_column_m(0.3) == pytest.approx(70.0 / 234) and (70.0 / steep_column_m(0.5)) == 140
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0.0, 30.0, (20000, 2))
+    h = 20.0 + 3.0 * np.sin(xy[:, 0] * 1.7) * np.cos(xy[:, 1] * 1.3) + rng.normal(0.0, 0.6, len(xy))
+    cand = np.nonzero((xy > 3.0).all(axis=1) & (xy < 27.0).all(axis=1) & (h > 22.0))[0]
+    rule = SteepApex(slope=1.5, sectors=3)
+    alone = _steep(xy, h, cand, rule)
+    assert 0 < alone.sum() < len(cand)
+    far = rng.uniform(-40.17, -20.0, (500, 2))          # a neighbour's points, 20 m and more away
+    wider = _steep(np.vstack([xy, far]), np.concatenate([h, np.full(len(far), 25.0)]), cand, rule)
+    assert np.array_equal(alone, wider)
