@@ -82,13 +82,18 @@ def crop_margins(png: Path, out: Path, pad: int = 4) -> Path:
     return out
 
 
-def desktop_session(sample: Path, workdir: Path, timeout_s: float = 1200.0) -> dict:
-    """Run scripts/desktop_outputs.py in QGIS desktop under Xvfb; returns its report (with ``shots``)."""
+def desktop_session(sample: Path, workdir: Path, timeout_s: float = 1200.0, stall_s: float = 360.0) -> dict:
+    """Run scripts/desktop_outputs.py in QGIS desktop under Xvfb; returns its report (with ``shots``).
+
+    The session writes its report after every step.  When no step ends for ``stall_s`` seconds the session
+    is killed and run once more from the start, and the report says so (``attempts``): Qt3D 5.15 in QGIS 3.22
+    now and then deadlocks while it creates a 3D view (the main thread waits in
+    ``QAspectEngine::setRootEntity`` for the render thread, which waits for it), which no timer inside the
+    frozen application can end."""
     if shutil.which("xvfb-run") is None or shutil.which("qgis") is None:
         raise RuntimeError("needs xvfb-run and qgis (Debian: apt-get install -y xvfb qgis)")
     workdir.mkdir(parents=True, exist_ok=True)
     shots = workdir / "shots"
-    shots.mkdir(exist_ok=True)
     report_path = workdir / "report.json"
     env = {k: v for k, v in os.environ.items() if k != "QT_QPA_PLATFORM"}   # the desktop needs the X display
     purelib = sysconfig.get_paths()["purelib"]     # the venv's packages for QGIS's Python
@@ -100,11 +105,48 @@ def desktop_session(sample: Path, workdir: Path, timeout_s: float = 1200.0) -> d
     Path(env["XDG_RUNTIME_DIR"]).mkdir(mode=0o700, exist_ok=True)
     cmd = ["xvfb-run", "-a", "-s", f"-screen 0 {SCREEN}", "qgis", "--profiles-path", str(ROOT / ".qgis-profile"),
            "--nologo", "--noversioncheck", "--code", str(DESKTOP_SCRIPT)]
-    with open(workdir / "qgis.log", "wb") as log:
-        run = subprocess.run(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=timeout_s, cwd=workdir)
+    stalls = []
+    for attempt in (1, 2):
+        shutil.rmtree(workdir / "forest", ignore_errors=True)   # a stalled attempt's files go
+        shutil.rmtree(shots, ignore_errors=True)
+        report_path.unlink(missing_ok=True)
+        shots.mkdir()
+        returncode, stalled = _run_watched(cmd, env, workdir, timeout_s, stall_s, report_path)
+        if not stalled:
+            break
+        stalls.append(stalled)
     report = json.loads(report_path.read_text()) if report_path.exists() else {"error": "no report"}
-    report.update(returncode=run.returncode, shots=str(shots), log=str(workdir / "qgis.log"))
+    report.update(returncode=returncode, shots=str(shots), log=str(workdir / "qgis.log"), attempts=attempt,
+                  stalls=stalls)
     return report
+
+
+def _run_watched(cmd, env, workdir: Path, timeout_s: float, stall_s: float, report_path: Path):
+    """(return code, None) of the session, or (None, the last step it finished) when it stalled."""
+    import signal
+
+    with open(workdir / "qgis.log", "ab") as log:
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=workdir,
+                                start_new_session=True)
+        start = last = time.monotonic()
+        seen = None
+        while proc.poll() is None:
+            time.sleep(1.0)
+            stamp = report_path.stat().st_mtime if report_path.exists() else None
+            if stamp != seen:
+                seen, last = stamp, time.monotonic()
+            now = time.monotonic()
+            if now - last > stall_s or now - start > timeout_s:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                if now - start > timeout_s:
+                    raise subprocess.TimeoutExpired(cmd, timeout_s)
+                try:
+                    steps = json.loads(report_path.read_text()).get("steps", [])
+                except (OSError, ValueError):
+                    steps = []
+                return None, steps[-1][1] if steps else "start"
+    return proc.returncode, None
 
 
 def main(argv=None) -> int:
