@@ -37,9 +37,14 @@ RUNS = (
 
 def stamp_path() -> Path:
     """Where the 'kernels compiled' stamp lives: beside numba's cache when NUMBA_CACHE_DIR is set, else in
-    the kernels' own __pycache__ when writable, else in the user's cache folder."""
+    the kernels' own __pycache__ when writable, else in the user's cache folder.
+
+    A NUMBA_CACHE_DIR cache is keyed by the path the sources were imported from (QGIS loads the plugin
+    through its plugin folder, the ``sylva`` command from the checkout): the stamp there names that path
+    too, so a warm-up through one path does not vouch for the other."""
     if os.environ.get("NUMBA_CACHE_DIR"):
-        return Path(os.environ["NUMBA_CACHE_DIR"]) / "sylva-warm.json"
+        imported_from = str(Path(os.path.abspath(__file__)).parents[1])
+        return Path(os.environ["NUMBA_CACHE_DIR"]) / f"sylva-warm-{hashlib.sha256(imported_from.encode()).hexdigest()[:12]}.json"
     own = ROOT / "core" / "__pycache__"
     try:
         own.mkdir(exist_ok=True)

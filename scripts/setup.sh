@@ -56,6 +56,9 @@ fi
 # Imported through .qgis-plugins/sylva, the path QGIS loads the plugin from (numba keys a NUMBA_CACHE_DIR
 # cache by the source's path; the default cache beside the sources serves the CLI as well).
 PYTHONPATH="$root/.qgis-plugins${PYTHONPATH:+:$PYTHONPATH}" .venv/bin/python -m sylva.plugin.warmup --if-needed
+if [ -n "${NUMBA_CACHE_DIR:-}" ]; then   # that cache is keyed by path: warm the checkout's path (the CLI's) too
+    .venv/bin/python -m sylva.plugin.warmup --if-needed
+fi
 
 if [ "$viewers" = 1 ]; then
     lock="tools/viewers/package-lock.json"
