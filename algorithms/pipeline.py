@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from .common import crs_override
+from .segment import SEGMENTATION_LABELS
 from .spec import (BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, LEAF_LABELS, NUMBER, NUMBER_RESULT, STRING,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)
 
@@ -93,7 +94,7 @@ PIPELINE = Algorithm(
                    "are the same; the segmented points are written per chunk (tiles/<file>_<i>_<j>.laz). "
                    "0: one tile per file. About 250 m suits 20 points/m²."),
         Param("METHOD", ENUM, "Segmentation method", options=tuple(SEGMENTATION), default="ncut",
-              labels=("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)"),
+              labels=SEGMENTATION_LABELS[:2],
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "
                    "canopy height model (Dalponte & Coomes 2016)."),
         Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,

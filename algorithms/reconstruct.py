@@ -51,10 +51,10 @@ GUIDED_PARAMS = method_params(GuidedGrowth, {
    ranges={"step_m": (0.01, 10.0), "kill_distance_m": (0.01, 20.0), "tropism": (0.0, 10.0)},
    prefix="Guided growth: ")
 
-METHOD_LABELS = ("Hybrid: greedy skeleton, guided growth where it fails", "Greedy skeleton (Hu et al. 2017)",
-                 "Guided growth (Guo et al. 2018)", "Dense scans: wood fitted to the points",
+METHOD_LABELS = ("Hybrid: greedy skeleton, guided growth where it fails", "Greedy skeleton (airborne scans)",
+                 "Guided growth through the points", "Dense scans: wood fitted to the points",
                  "Automatic: dense where the scan is dense", "Completed: hybrid plus grown small branches",
-                 "Yan et al. 2009 variational k-means (B-spline branches)")
+                 "Variational k-means (B-spline branches)")
 
 
 def _methods(args):

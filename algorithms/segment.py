@@ -148,9 +148,9 @@ STEMS_PARAMS = method_params(StemSegmentation, {
    prefix="Stems: ")
 
 METHODS = {"ncut": NormalizedCut, "chm": ChmRegionGrowing, "stems": StemSegmentation, "auto": AutoSegmentation}
-SEGMENTATION_LABELS = ("Normalised cut (Hu et al. 2017)", "CHM region growing (Dalponte & Coomes 2016)",
-                       "Stems of terrestrial plot scans (Cabo et al. 2018, 3DFin)",
-                       "Automatic: stems for terrestrial plot scans, normalised cut otherwise")
+SEGMENTATION_LABELS = ("Normalised cut on a voxel graph (airborne scans)", "Region growing on the canopy height model",
+                       "Stems (terrestrial or mobile plot scans)",
+                       "Automatic: stems for plot scans, normalised cut otherwise")
 
 
 def segmentation_method(args: dict):
