@@ -654,8 +654,9 @@ def test_qgis_process_damaged_laz_and_failed_pipeline(damaged, tmp_path):
 # --------------------------------------------------------------------------- every GLB is valid glTF
 
 @pytest.mark.slow
-def test_every_glb_sylva_writes_passes_the_khronos_validator(models_of_corner, tmp_path):
-    """Tile, per-tree, billboard, 3D Tiles content and sketch GLBs: all of them, 0 errors each."""
+def test_every_glb_sylva_writes_passes_the_khronos_validator(sample_laz, tmp_path):
+    """Every GLB of the whole sample: the pipeline's tile GLB and 3D Tiles content, exportmodels' per-tree
+    GLBs and tileset, billboards and their tileset, and a sketched tree: 0 errors each."""
     import shutil
 
     from conftest import ROOT
@@ -665,7 +666,10 @@ def test_every_glb_sylva_writes_passes_the_khronos_validator(models_of_corner, t
     viewers = ROOT / "tools" / "viewers"
     if shutil.which("node") is None or not (viewers / "node_modules" / "gltf-validator").is_dir():
         pytest.skip("the Khronos validator is not installed (npm install in tools/viewers)")
-    seg, glb = models_of_corner
+    forest = tmp_path / "forest"
+    out = sylva("pipeline", f"--INPUT={sample_laz}", f"--OUTPUT_FOLDER={forest}")
+    assert out.returncode == 0, out.stderr
+    seg, glb = forest / "tiles" / "sample.laz", forest / "models" / "sample.glb"
     out = sylva("exportmodels", f"--INPUT={glb}", f"--GLB_FOLDER={tmp_path / 'per_tree'}", f"--TILES={tmp_path / 'tiles'}")
     assert out.returncode == 0, out.stderr
     out = sylva("billboards", f"--INPUT={seg}", f"--OUTPUT={tmp_path / 'bb.glb'}", f"--TILESET={tmp_path / 'bb_tiles'}",
@@ -676,8 +680,9 @@ def test_every_glb_sylva_writes_passes_the_khronos_validator(models_of_corner, t
     out = sylva("treefromsketch", f"--FRONT={src}|layername=front", f"--SIDE={src}|layername=side",
                 f"--LOCATION={src}|layername=location", f"--HEIGHT_M={H}", f"--MODEL={tmp_path / 'sketch.glb'}")
     assert out.returncode == 0, out.stderr
-    files = [glb, *sorted(tmp_path.rglob("*.glb"))]
-    kinds = {"per_tree": 0, "tiles": 0, "bb_tiles": 0}
+    files = sorted(tmp_path.rglob("*.glb"))
+    assert len(list((tmp_path / "per_tree").glob("*.glb"))) >= 200       # one per tree of the sample
+    kinds = {"per_tree": 0, "tiles": 0, "bb_tiles": 0, "forest": 0}
     for f in files:
         for k in kinds:
             kinds[k] += k in f.relative_to(tmp_path).parts if f.is_relative_to(tmp_path) else 0
