@@ -20,6 +20,27 @@ def input_cloud(help_extra: str = "") -> Param:
     )
 
 
+def min_height_param() -> Param:
+    """MIN_HEIGHT_M of every algorithm that finds trees, its default :data:`sylva.core.tops.MIN_TREE_HEIGHT_M`."""
+    from ..core.tops import MIN_TREE_HEIGHT_M
+    from .spec import NUMBER
+
+    return Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=MIN_TREE_HEIGHT_M, minimum=0.0,
+                 maximum=200.0, help="Tops lower than this above the ground are not trees (shrubs, cars, noise); "
+                                     "lower points belong to a tree only under its crown.")
+
+
+def lod_param(advanced: bool = False) -> Param:
+    """LOD of every algorithm that builds models, its default :data:`sylva.core.geometry.DEFAULT_LOD`."""
+    from ..core.geometry import DEFAULT_LOD
+    from .spec import INTEGER
+
+    return Param("LOD", INTEGER, "Level of detail (0–2)", default=DEFAULT_LOD, minimum=0, maximum=2,
+                 advanced=advanced,
+                 help="0: light models (4-sided branches, twigs under 3 cm pruned; ~40 kB a tree); 1: 8 sides, "
+                      "smoothed (~0.5 MB a tree); 2: 12 sides, every twig.")
+
+
 def crs_override() -> Param:
     return Param(
         "CRS", CRS, "Override CRS", optional=True, advanced=True,
@@ -110,8 +131,6 @@ def drop_noise(cloud, feedback: Feedback):
 
 def load_segmented(args: dict, feedback: Feedback):
     """(cloud without noise, with ``height`` above ground; its int64 treeID labels) of a segmented INPUT."""
-    import numpy as np
-
     from ..core.terrain import normalize
 
     source = load_cloud(args, feedback)

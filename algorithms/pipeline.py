@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
-from .common import crs_override
+from .common import crs_override, lod_param, min_height_param
 from .segment import SEGMENTATION_LABELS
 from .spec import (BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, LEAF_LABELS, NUMBER, NUMBER_RESULT, STRING,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)
@@ -101,13 +101,11 @@ PIPELINE = Algorithm(
               help="Diameter of the local-maximum window that finds the tree tops guiding the "
                    "segmentation; left empty, each method uses its own measured default (as in "
                    "segmenttrees: the same chain and the same tops)."),
-        Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
-              help="Lower tops are not trees."),
+        min_height_param(),
         Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,
               help="Model every tree (hybrid greedy skeleton / guided growth) and write GLB and 3D Tiles; "
                    "off: segmentation and measurements only (much faster)."),
-        Param("LOD", INTEGER, "Level of detail (0–2)", default=0, minimum=0, maximum=2, advanced=True,
-              help="0: light models; 1: 8-sided smoothed branches; 2: every twig."),
+        lod_param(advanced=True),
         Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
               labels=LEAF_LABELS,
               advanced=True, help="auto: needles on conical crowns, leaf cards otherwise."),

@@ -8,8 +8,8 @@ import numpy as np
 from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
-from .common import build_method, crs_override, input_cloud, method_params
-from .spec import (ENUM, FILE_OUT, FOLDER_OUT, INTEGER, LEAF_LABELS, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
+from .common import build_method, crs_override, input_cloud, lod_param, method_params
+from .spec import (ENUM, FILE_OUT, FOLDER_OUT, LEAF_LABELS, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
                    Algorithm, Feedback, Param, Result)
 
 METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed", "yan")
@@ -224,9 +224,7 @@ RECONSTRUCT_TREES = Algorithm(
                    "main branches; yan: Yan et al. (2009) variational k-means with B-spline branches. Each method's own settings are under Advanced parameters, named after it."),
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
-        Param("LOD", INTEGER, "Level of detail (0–2)", default=0, minimum=0, maximum=2,
-              help="0: light models (4-sided branches, twigs under 3 cm pruned; ~40 kB a tree); 1: 8 sides, "
-                   "smoothed (~0.5 MB a tree); 2: 12 sides, every twig."),
+        lod_param(),
         Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
               labels=LEAF_LABELS,
               help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise; "

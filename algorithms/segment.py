@@ -7,7 +7,7 @@ from ..core.progress import scaled
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from ..core.segment.stems import AutoSegmentation, StemSegmentation
 from ..core.table import VectorTable
-from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params
+from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params, min_height_param
 from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
                    Algorithm, Feedback, Param, Result)
 
@@ -262,8 +262,7 @@ SEGMENT_TREES = Algorithm(
         Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
               help="Diameter of the local-maximum window that finds the tree tops guiding the "
                    "segmentation; left empty (or 0), each method uses its own measured default."),
-        Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
-              help="Lower tops are not trees; lower points belong to a tree only under its crown."),
+        min_height_param(),
         *NCUT_PARAMS,
         *CHM_PARAMS,
         *STEMS_PARAMS,

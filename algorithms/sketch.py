@@ -1,15 +1,14 @@
 """A tree from two sketched profiles (the sketch paper, §4–§7): sylva:treefromsketch."""
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
 from ..core.forest import LEAVES
 from ..core.reconstruct.sketch import SketchTree
-from .common import build_method, method_params
-from .spec import (ENUM, FILE_OUT, INTEGER, LEAF_LABELS, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
+from .common import build_method, lod_param, method_params
+from .spec import (ENUM, FILE_OUT, LEAF_LABELS, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
                    VECTOR_OUT, Algorithm, Feedback, Param, Result)
 
 SKETCH_PARAMS = method_params(SketchTree, {
@@ -216,8 +215,7 @@ TREE_FROM_SKETCH = Algorithm(
               help="Compass bearing the front photo was taken looking along (0: looking north, so the "
                    "drawing's right is east and the side photo looks west)."),
         *SKETCH_PARAMS,
-        Param("LOD", INTEGER, "Level of detail (0–2)", default=1, minimum=0, maximum=2, advanced=True,
-              help="0: light model (4-sided branches); 1: 8 sides, smoothed; 2: 12 sides, every twig."),
+        lod_param(advanced=True),
         Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto", labels=LEAF_LABELS,
               help="auto: needle clusters on a conical crown, leaf cards otherwise; none: bare wood."),
         Param("MODEL", FILE_OUT, "3D model (GLB)", file_filter="glTF binary (*.glb)", optional=True,

@@ -5,7 +5,7 @@ import shapely
 
 from ..core.progress import scaled
 from ..core.table import VectorTable
-from .common import crs_override, drop_noise, is_raster, load_cloud, require_existing
+from .common import crs_override, drop_noise, is_raster, load_cloud, min_height_param, require_existing
 from .spec import ENUM, FILE, NUMBER, NUMBER_RESULT, POINT, VECTOR_OUT, Algorithm, Feedback, Param, Result
 
 WINDOWS = ("fixed", "variable")
@@ -62,8 +62,7 @@ TREE_TOPS = Algorithm(
         Param("WINDOW_DIAMETER_M", NUMBER, "Fixed window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
               help="Diameter of the circular search window in metres; about the crown radius of "
                    "the smallest trees you want to find."),
-        Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=2.0, minimum=0.0, maximum=200.0,
-              help="Local maxima lower than this above the ground are not trees (shrubs, cars, noise)."),
+        min_height_param(),
         crs_override(),
         Param("OUTPUT", VECTOR_OUT, "Tree tops", geometry=POINT, style="tree_tops.qml",
               help="Point layer (PointZ, z = elevation of the top) with tree_id and height."),

@@ -37,7 +37,7 @@ from .cloud import PointCloud
 from .errors import InputError
 from .geometry import (_branch_set, _continuations, _forest, _forest_polylines, _forest_wood, _local_parent, _norm3,
                        _simplify_forest, _split_branch_set, _tip_counts, _tree_branches, _trusted_skeleton,
-                       pipe_model_radii)
+                       DEFAULT_LOD, pipe_model_radii)
 from .jit import njit
 from .leaves import LeafCards, NeedleClusters, _forest_tip_sections, _grow_leaves, grow_leaves
 from .measure import TreeMetrics, estimate_dbhs
@@ -52,7 +52,7 @@ LEAVES = ("auto", "broadleaf", "needles", "none")
 class ModelOptions:
     method: Any = Hybrid()
     dense_method: Any = None      # used instead of `method` for trees is_dense_scan() calls dense
-    lod: int = 1
+    lod: int = DEFAULT_LOD
     leaves: str = "auto"          # auto: needles for conical crowns, leaf cards otherwise
     leaf_shape: str = "ovate"
     tip_radius_m: float = 0.01

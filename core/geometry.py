@@ -916,6 +916,9 @@ class LevelOfDetail:
     min_radius_m: float = 0.0
 
 
+#: The level of detail models get unless asked otherwise (light: a forest of them stays small).
+DEFAULT_LOD = 0
+
 #: The three standard levels: 0 coarse (4 sides, no smoothing, twigs under
 #: 3 cm radius pruned), 1 middle, 2 fine (12 sides, 6 Hermite samples, all).
 LOD = (
@@ -950,7 +953,7 @@ class TreeMeshParts:
     kept: np.ndarray
 
 
-def tree_mesh_arrays(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
+def tree_mesh_arrays(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = DEFAULT_LOD,
                      radii: Optional[np.ndarray] = None, branch_set: Optional[BranchSet] = None) -> TreeMeshParts:
     """The wood of a tree as arrays: one closed generalised cylinder per branch.
 
@@ -1102,7 +1105,7 @@ def _join_branch_sets(bsets: List[BranchSet], node_off: np.ndarray):
     return joined, boff
 
 
-def tree_mesh_arrays_batch(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=None,
+def tree_mesh_arrays_batch(skeletons, lod: Union[int, LevelOfDetail] = DEFAULT_LOD, radii=None,
                            branch_sets=None) -> List[TreeMeshParts]:
     """:func:`tree_mesh_arrays` of many trees, with the tubes of all of them swept in one batch.
 
@@ -1205,7 +1208,7 @@ def _split_tube_kernel(verts, faces, face_line, offsets, line_off, sides):
     return out_v, out_f, out_l, v_off, f_off
 
 
-def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
+def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = DEFAULT_LOD,
               radii: Optional[np.ndarray] = None, per_branch: bool = False,
               branch_set: Optional[BranchSet] = None):
     """The wood of a tree as a :class:`trimesh.Trimesh` (see :func:`tree_mesh_arrays`).
@@ -1233,7 +1236,7 @@ def tree_mesh(skeleton: Skeleton, lod: Union[int, LevelOfDetail] = 1,
     return out
 
 
-def tree_meshes(skeletons, lod: Union[int, LevelOfDetail] = 1, radii=None, branch_sets=None) -> list:
+def tree_meshes(skeletons, lod: Union[int, LevelOfDetail] = DEFAULT_LOD, radii=None, branch_sets=None) -> list:
     """:func:`tree_mesh` of many trees (one :class:`trimesh.Trimesh` each), the tubes swept in one batch.
 
     The same meshes as one :func:`tree_mesh` call per tree (see :func:`tree_mesh_arrays_batch`).

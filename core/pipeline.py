@@ -56,6 +56,7 @@ import numpy as np
 
 from .cloud import ANCHOR_GRID_M, AnchoredCloud, PointCloud
 from .errors import EmptyInputError, InputError, SylvaError
+from .geometry import DEFAULT_LOD
 from .segment import NormalizedCut
 from .treeids import grid_keys, tree_ids
 
@@ -85,7 +86,7 @@ class PipelineOptions:
     crown_base_gap_m: float = 1.5
     reconstruct: bool = True
     reconstruction: Any = None
-    lod: int = 0
+    lod: int = DEFAULT_LOD
     leaves: str = "auto"
     billboards: bool = False
     chunk_size: int = 1_000_000

@@ -43,6 +43,10 @@ from .jit import njit
 from .progress import CancelCheck, Progress, check, report
 from .raster import Raster
 
+#: Tops lower than this above the ground are not trees (shrubs, cars, noise): the one default of every
+#: tree-top search and segmentation method.
+MIN_TREE_HEIGHT_M = 2.0
+
 
 @dataclass(frozen=True)
 class FixedWindow:
@@ -452,7 +456,7 @@ def _tops_from_chm(chm: Raster, window: Window, min_height_m: float,
 
 
 def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Window] = None,
-                   min_height_m: float = 2.0, isolation_m: Optional[float] = 2.0,
+                   min_height_m: float = MIN_TREE_HEIGHT_M, isolation_m: Optional[float] = 2.0,
                    progress: Progress = None, cancelled: CancelCheck = None,
                    apex: Optional[SteepApex] = None, diameters=None,
                    apex_diameters=None) -> TreeTops:

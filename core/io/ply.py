@@ -5,7 +5,6 @@ Only the vertices are read (a mesh's faces are ignored): x y z, and red / green 
 """
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Optional, Union
 
 import numpy as np

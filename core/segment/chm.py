@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..progress import CancelCheck, Progress, check, report, scaled
+from ..tops import MIN_TREE_HEIGHT_M
 from .base import ground_mask, resolve_tops
 
 __all__ = ["ChmRegionGrowing", "grow_regions"]
@@ -55,7 +56,7 @@ class ChmRegionGrowing:
     th_seed: float = 0.45
     th_cr: float = 0.55
     max_crown_diameter_m: float = 10.0
-    min_height_m: float = 2.0
+    min_height_m: float = MIN_TREE_HEIGHT_M
     top_window_m: float = 3.0
 
     def __post_init__(self):

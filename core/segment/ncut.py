@@ -124,6 +124,7 @@ from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report, scaled
+from ..tops import MIN_TREE_HEIGHT_M
 from .base import column_keys, ground_mask, label_columns_below, resolve_tops
 
 __all__ = ["NormalizedCut", "VoxelGraph", "voxel_graph"]
@@ -206,7 +207,7 @@ class NormalizedCut:
     sigma_v_m: float = 1.0
     sigma_intensity: float = 1.0
     sigma_colour: float = 0.25
-    min_height_m: float = 2.0
+    min_height_m: float = MIN_TREE_HEIGHT_M
     top_window_m: float = 2.0
     top_window_points: float = 25.0
     apex_window_m: float = 0.8
