@@ -67,10 +67,9 @@ def _methods(args):
     hybrid = Hybrid(primary=greedy, fallback=guided)
     # Dense scans: geodesic level sets with circles fitted to the points and the wood swept along them
     # (benchmarks/dense.py measures the written GLB: closer to the points than AdTree's on the TLS trees).
-    # "yan": Yan et al.'s variational k-means with the options measured best on thick stems (surface-normal
-    # axes, least-squares circles, clusters split down to 30 points, radii and axes refitted).
+    # "yan": Yan et al.'s variational k-means with the preset measured best on thick stems.
     dense = LevelSetQSM()
-    yan = VariationalKMeans(axis="normals", radius="fit", refit=True, min_cluster_points=30)
+    yan = VariationalKMeans.dense_scan()
     if args["METHOD"] == "completed":
         from ..core.reconstruct.sketch import SketchCompletion
 

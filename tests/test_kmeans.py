@@ -323,3 +323,14 @@ def test_fast_kernels_match_the_reference():
     lab, _ = _flood(g, seeds)
     dist = sparse.csgraph.dijkstra(g, unweighted=True, indices=seeds)
     assert np.all(dist[lab, np.arange(len(xyz))] == dist.min(axis=0))   # every point joins a nearest seed
+
+
+def test_the_dense_scan_preset_is_what_the_plugin_runs():
+    """METHOD=yan of reconstructtrees is VariationalKMeans.dense_scan(), a preset of the core class."""
+    from sylva.algorithms.reconstruct import _methods
+    from sylva.core.reconstruct import VariationalKMeans
+
+    args = {"METHOD": "yan"}
+    method, dense = _methods(args)
+    assert method == VariationalKMeans.dense_scan() and dense is None
+    assert method != VariationalKMeans() and method.min_cluster_points == 30 and method.refit

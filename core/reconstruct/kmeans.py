@@ -1323,6 +1323,13 @@ class VariationalKMeans:
 
     name = "variational_kmeans"
 
+    @classmethod
+    def dense_scan(cls) -> "VariationalKMeans":
+        """The preset measured best on thick, densely scanned stems (``benchmarks/dense.py``): cluster axes
+        from surface normals, least-squares circle radii, clusters split down to 30 points, radii and axes
+        refitted to the points (Sylva, not in the paper; the paper's own settings are the defaults)."""
+        return cls(axis="normals", radius="fit", refit=True, min_cluster_points=30)
+
     def __post_init__(self):
         if self.k < 2 or self.n_seeds < 0 or self.max_clusters < 1 or self.max_iter < 1:
             raise InputError("VariationalKMeans: k >= 2, n_seeds >= 0, max_clusters >= 1 and max_iter >= 1")
