@@ -27,11 +27,12 @@ import functools
 import os
 import threading
 
-__all__ = ["njit", "jit_status", "Kernel", "compile_seconds", "kernels", "recording"]
+__all__ = ["njit", "helper", "jit_status", "Kernel", "Helper", "compile_seconds", "kernels", "helpers", "recording"]
 
 _LOCK = threading.RLock()
 _NUMBA = None          # the numba module once imported, False when unavailable/disabled
 _KERNELS = []          # every Kernel defined (see kernels())
+_HELPERS = []          # every Helper defined (see helpers())
 _COMPILE = {"seconds": 0.0, "count": 0}   # numba compilations (cache misses) in this process
 _DEPTH = threading.local()
 _RECORD = None         # while recording(): {kernel: (size, copied arguments)} of each kernel's smallest call
@@ -75,6 +76,11 @@ def kernels() -> list:
     return list(_KERNELS)
 
 
+def helpers() -> list:
+    """Every :class:`Helper` defined by the modules imported so far."""
+    return list(_HELPERS)
+
+
 def _numba():
     global _NUMBA
     if _NUMBA is None:
@@ -116,11 +122,12 @@ class Kernel:
                     if not numba:
                         self.compiled = self.py_func
                     else:
+                        func = _with_helpers(self.py_func)
                         try:
-                            fn = numba.njit(cache=True, nogil=True)(self.py_func)
+                            fn = numba.njit(cache=True, nogil=True)(func)
                             self.cached = True
                         except RuntimeError:     # "cannot cache function ...: no locator available"
-                            fn = numba.njit(nogil=True)(self.py_func)
+                            fn = numba.njit(nogil=True)(func)
                             self.cached = False
                         self.compiled = fn
         return self.compiled
@@ -132,6 +139,78 @@ class Kernel:
         if _RECORD is not None:
             _remember(self, args)
         return fn(*args)
+
+
+class Helper:
+    """A function kernels may call (see :func:`helper`): compiled with the kernel that calls it.
+
+    ``py_func`` is the Python function; called from Python, a helper runs compiled (or as Python
+    without numba), like a kernel.
+    """
+
+    def __init__(self, py_func):
+        self.py_func = py_func
+        self.compiled = None
+        functools.update_wrapper(self, py_func)
+        _HELPERS.append(self)
+
+    def load(self):
+        """The numba dispatcher of the helper (``py_func`` itself without numba)."""
+        if self.compiled is None:
+            with _LOCK:
+                if self.compiled is None:
+                    numba = _numba()
+                    self.compiled = (numba.njit(nogil=True)(_with_helpers(self.py_func)) if numba
+                                     else self.py_func)
+        return self.compiled
+
+    def __call__(self, *args):
+        fn = self.compiled
+        if fn is None:
+            fn = self.load()
+        return fn(*args)
+
+
+def _used_helpers(py_func, seen=None) -> list:
+    """The helpers ``py_func`` calls (by global name, nested code included), and the helpers they call."""
+    import types
+
+    seen = {} if seen is None else seen
+    codes = [py_func.__code__]
+    while codes:
+        code = codes.pop()
+        codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
+        for name in code.co_names:
+            value = py_func.__globals__.get(name)
+            if isinstance(value, Helper) and name not in seen:
+                seen[name] = value
+                _used_helpers(value.py_func, seen)
+    return sorted(seen.items())
+
+
+def _with_helpers(py_func):
+    """``py_func`` ready for numba: the helpers it calls bound as compiled dispatchers in its module, and,
+    when it calls any, a copy named after their sources.
+
+    numba's cache is keyed by the kernel's own file and name: a kernel whose helper changed would load
+    stale machine code.  The copy's name ends in a hash of the helpers' sources, so that a changed helper
+    is a cache miss (recompiled), never a wrong answer (Sylva, not in numba)."""
+    import hashlib
+    import inspect
+    import types
+
+    used = _used_helpers(py_func)
+    if not used:
+        return py_func
+    digest = hashlib.sha1()
+    for name, h in used:
+        py_func.__globals__[name] = h.load()     # numba resolves globals when it compiles
+        digest.update(inspect.getsource(h.py_func).encode("utf-8"))
+    copy = types.FunctionType(py_func.__code__, py_func.__globals__, py_func.__name__, py_func.__defaults__,
+                              py_func.__closure__)
+    copy.__qualname__ = f"{py_func.__qualname__}__h{digest.hexdigest()[:10]}"
+    copy.__doc__ = py_func.__doc__
+    return copy
 
 
 def _size(value) -> int:
@@ -172,10 +251,18 @@ class recording:
 def njit(py_func):
     """Decorator: ``py_func`` becomes a :class:`Kernel` (numba ``njit(cache=True, nogil=True)`` on first call).
 
-    Kernels must not call other kernels (each is compiled on its own); write
-    them as self-contained loops over numpy arrays.
+    Kernels do not call other kernels; what several kernels share is a :func:`helper` (``core/kernels/``).
     """
     return Kernel(py_func)
+
+
+def helper(py_func):
+    """Decorator: ``py_func`` becomes a :class:`Helper`, a function kernels call by its global name.
+
+    When a kernel is compiled its helpers are compiled into it, and a change to a helper's source
+    recompiles the kernels that use it (see :func:`_with_helpers`).
+    """
+    return Helper(py_func)
 
 
 def jit_status() -> dict:

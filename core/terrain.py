@@ -45,6 +45,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from .cloud import PointCloud
 from .errors import EmptyInputError, InputError
 from .jit import njit
+from .kernels.grid import grid_cells
 from .noise import NOISE_CLASSES, isolated_points
 from .progress import CancelCheck, Progress, check, report
 from .raster import Raster
@@ -613,21 +614,8 @@ def _lowest_per_cell_kernel(g, cell, max_cells):
     what ``np.lexsort((z, row, column))`` keeps (lowest z, NaN last, first of equals).
     Empty when the grid would have more than ``max_cells`` cells."""
     n = len(g)
-    ix = np.empty(n, dtype=np.int64)
-    iy = np.empty(n, dtype=np.int64)
-    x0, y0, x1, y1 = 0, 0, 0, 0
-    for i in range(n):
-        fx = np.floor(g[i, 0] / cell)
-        fy = np.floor(g[i, 1] / cell)
-        if not (abs(fx) < max_cells and abs(fy) < max_cells):
-            return np.empty(0, dtype=np.int64)
-        ix[i], iy[i] = int(fx), int(fy)
-        if i == 0:
-            x0, y0, x1, y1 = ix[i], iy[i], ix[i], iy[i]
-        x0, y0 = min(x0, ix[i]), min(y0, iy[i])
-        x1, y1 = max(x1, ix[i]), max(y1, iy[i])
-    nx, ny = x1 - x0 + 1, y1 - y0 + 1
-    if n == 0 or nx * ny > max_cells:
+    ix, iy, x0, y0, nx, ny = grid_cells(g, cell, max_cells)
+    if nx == 0:
         return np.empty(0, dtype=np.int64)
     best = np.full(nx * ny, -1, dtype=np.int64)
     kept = 0

@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from .cloud import ANCHOR_GRID_M, PointCloud
 from .errors import EmptyInputError, InputError
 from .jit import njit
+from .kernels.grid import grid_cells
 from .progress import CancelCheck, Progress, check, report
 from .raster import Raster
 
@@ -219,21 +220,8 @@ def _cell_maxima_kernel(xy, h, cell, max_cells):
     """:func:`_cell_maxima` on a dense grid; empty when it would exceed ``max_cells`` cells
     (or a coordinate is not finite)."""
     n = len(xy)
-    ix = np.empty(n, dtype=np.int64)
-    iy = np.empty(n, dtype=np.int64)
-    x0, y0, x1, y1 = 0, 0, 0, 0
-    for i in range(n):
-        fx = np.floor(xy[i, 0] / cell)
-        fy = np.floor(xy[i, 1] / cell)
-        if not (abs(fx) < max_cells and abs(fy) < max_cells):
-            return np.empty(0, dtype=np.int64)
-        ix[i], iy[i] = int(fx), int(fy)
-        if i == 0:
-            x0, y0, x1, y1 = ix[i], iy[i], ix[i], iy[i]
-        x0, y0 = min(x0, ix[i]), min(y0, iy[i])
-        x1, y1 = max(x1, ix[i]), max(y1, iy[i])
-    nx, ny = x1 - x0 + 1, y1 - y0 + 1
-    if n == 0 or nx * ny > max_cells:
+    ix, iy, x0, y0, nx, ny = grid_cells(xy, cell, max_cells)
+    if nx == 0:
         return np.empty(0, dtype=np.int64)
     best = np.full(nx * ny, -1, dtype=np.int64)
     kept = 0

@@ -72,3 +72,61 @@ def test_python_and_compiled_forms_agree(kernel, calls):
     for i, (x, y) in enumerate(zip(nb_args, py_args)):
         if isinstance(x, np.ndarray):
             _same(x, y, f"argument {i} after the call")
+
+
+# --------------------------------------------------------------------------- helpers kernels share
+
+def _all_helpers():
+    _all_kernels()
+    return sorted(jit.helpers(), key=lambda h: f"{h.__module__}.{h.__name__}")
+
+
+#: Arguments for each helper's Python-versus-compiled comparison (every helper needs one).
+HELPER_CASES = {
+    "grid_cells": [
+        (np.random.default_rng(1).uniform(-20.0, 30.0, (500, 3)), 0.7, 10_000_000),
+        (np.random.default_rng(2).uniform(0.0, 1e4, (200, 2)), 0.5, 1000),          # too many cells
+        (np.array([[0.0, np.nan]]), 1.0, 100),                                       # not finite
+        (np.zeros((0, 2)), 1.0, 100),                                                # no position
+    ],
+}
+
+
+@pytest.mark.parametrize("helper", _all_helpers(), ids=lambda h: h.__name__)
+def test_every_helper_agrees_with_its_python_form(helper):
+    assert helper.__name__ in HELPER_CASES, f"add a case for {helper.__module__}.{helper.__name__}"
+    if not jit.jit_status()["numba"]:
+        pytest.skip("numba is off: no compiled form to compare")
+    for args in HELPER_CASES[helper.__name__]:
+        _same(helper.load()(*copy.deepcopy(args)), helper.py_func(*copy.deepcopy(args)), helper.__name__)
+
+
+def test_a_changed_helper_recompiles_the_kernels_that_call_it(tmp_path):
+    """numba's cache is keyed by the kernel's file: a kernel whose helper (in another file) changed must not
+    load its old machine code (core/jit.py names the compiled copy after its helpers' sources)."""
+    import os
+    import subprocess
+    import sys
+
+    if not jit.jit_status()["numba"]:
+        pytest.skip("numba is off")
+    (tmp_path / "demo_helpers.py").write_text(
+        "from sylva.core.jit import helper\n\n@helper\ndef step(x):\n    return x + 1.0\n")
+    (tmp_path / "demo_kernel.py").write_text(
+        "from sylva.core.jit import njit\nfrom demo_helpers import step\n\n@njit\ndef kern(a):\n"
+        "    out = a.copy()\n    for i in range(a.shape[0]):\n        out[i] = step(a[i])\n    return out\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "SYLVA_NO_JIT")}
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
+    run = [sys.executable, "-c", "import numpy as np, demo_kernel; print(demo_kernel.kern(np.arange(3.0)).tolist())"]
+
+    def result():
+        out = subprocess.run(run, capture_output=True, text=True, env=env, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip()
+
+    assert result() == "[1.0, 2.0, 3.0]"
+    assert any(p.suffix == ".nbi" for p in (tmp_path / "__pycache__").iterdir())     # cached
+    assert result() == "[1.0, 2.0, 3.0]"                                               # from the cache
+    (tmp_path / "demo_helpers.py").write_text(
+        "from sylva.core.jit import helper\n\n@helper\ndef step(x):\n    return x + 2.0\n")
+    assert result() == "[2.0, 3.0, 4.0]"
