@@ -45,6 +45,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from .cloud import PointCloud
 from .errors import EmptyInputError, InputError
 from .jit import njit
+from .kernels.buckets import bucket_by_cell
 from .kernels.grid import grid_cells
 from .noise import NOISE_CLASSES, isolated_points
 from .progress import CancelCheck, Progress, check, report
@@ -394,19 +395,11 @@ def _serpentine_sort(xy, max_cells):
         nx, ny = max(nx, ix[i] + 1), max(ny, iy[i] + 1)
     if nx * ny > max_cells:
         return np.empty(0, dtype=np.int64)
-    start = np.zeros(nx * ny + 1, dtype=np.int64)
     key = np.empty(n, dtype=np.int64)
     for i in range(n):
         col = ix[i] if iy[i] % 2 == 0 else nx - 1 - ix[i]
         key[i] = iy[i] * nx + col
-        start[key[i] + 1] += 1
-    for c in range(nx * ny):
-        start[c + 1] += start[c]
-    order = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        order[start[key[i]]] = i
-        start[key[i]] += 1
-    return order
+    return bucket_by_cell(key, nx * ny)[1]
 
 
 def _int32(index: np.ndarray) -> np.ndarray:

@@ -89,6 +89,9 @@ HELPER_CASES = {
         (np.array([[0.0, np.nan]]), 1.0, 100),                                       # not finite
         (np.zeros((0, 2)), 1.0, 100),                                                # no position
     ],
+    "bucket_by_cell": [(np.random.default_rng(3).integers(0, 50, 400), 50), (np.zeros(0, dtype=np.int64), 3)],
+    "uf_find": [(np.array([0, 0, 1, 2, 4, 4]), 3), (np.arange(5), 4)],
+    "uf_union": [(np.array([0, 0, 1, 2, 4, 4]), 3, 5), (np.array([0, 0, 1, 2, 4, 4]), 3, 1)],
 }
 
 

@@ -124,6 +124,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..errors import InputError
 from ..jit import njit
+from ..kernels.buckets import bucket_by_cell
 from ..progress import CancelCheck, Progress, check, report
 from .model import Reconstruction, Skeleton, TreePoints, screen
 from .trunk import add_trunk_points
@@ -396,21 +397,13 @@ def _near_any_kernel(points, centres, r):
             break
         cs *= 1.5
     ncell = gx * gy * gz
-    start = np.zeros(ncell + 1, dtype=np.int64)
     cell = np.empty(mc, dtype=np.int64)
     for i in range(mc):
         cx = min(max(int(np.floor((centres[i, 0] - lo0) / cs)), 0), gx - 1)
         cy = min(max(int(np.floor((centres[i, 1] - lo1) / cs)), 0), gy - 1)
         cz = min(max(int(np.floor((centres[i, 2] - lo2) / cs)), 0), gz - 1)
         cell[i] = (cx * gy + cy) * gz + cz
-        start[cell[i] + 1] += 1
-    for c in range(ncell):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(mc, dtype=np.int64)
-    for i in range(mc):
-        order[fill[cell[i]]] = i
-        fill[cell[i]] += 1
+    start, order = bucket_by_cell(cell, ncell)
     r2 = r * r
     for p in range(n):
         px = points[p, 0]

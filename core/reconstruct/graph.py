@@ -35,6 +35,8 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..jit import njit
+from ..kernels.buckets import bucket_by_cell
+from ..kernels.unionfind import uf_union
 
 #: Most grid cells the kernel allocates per point (plus a constant); beyond it the cells grow.
 _CELLS_PER_POINT = 8
@@ -118,28 +120,20 @@ def _graph_frnn_knn(points, radius, k, cells_per_radius, cell_limit, nbins, cap)
     ncell = nx * ny * nz
     ci = np.empty((n, 3), np.int64)
     cid = np.empty(n, np.int64)
-    start = np.zeros(ncell + 1, np.int64)
     for i in range(n):
         for a in range(3):
             c = int(math.floor((points[i, a] - lo[a]) / cell))
             c = min(max(c, 0), dims[a] - 1)
             ci[i, a] = c
         cid[i] = (ci[i, 0] * ny + ci[i, 1]) * nz + ci[i, 2]
-        start[cid[i] + 1] += 1
-    for c in range(ncell):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    members = np.empty(n, np.int64)     # points of each cell, ascending index,
-    xs = np.empty(n)                    # and their coordinates in that order
+    start, members = bucket_by_cell(cid, ncell)     # points of each cell, ascending index,
+    xs = np.empty(n)                                # and their coordinates in that order
     ys = np.empty(n)
     zs = np.empty(n)
-    for i in range(n):
-        t = fill[cid[i]]
-        members[t] = i
-        xs[t] = points[i, 0]
-        ys[t] = points[i, 1]
-        zs[t] = points[i, 2]
-        fill[cid[i]] += 1
+    for t in range(n):
+        xs[t] = points[members[t], 0]
+        ys[t] = points[members[t], 1]
+        zs[t] = points[members[t], 2]
 
     r2 = radius * radius if radius >= 0 else -1.0
     far2 = radius * radius              # kNN neighbours within this are taken for FRNN ones
@@ -427,18 +421,7 @@ def _graph_csr(points, frnn_ptr, frnn_j, far_ptr, far_j, tie_i, tie_nn, radius):
             b = indices[t]
             if b < r:
                 continue                        # the same edge as (b, r)
-            a = r
-            while root[a] != a:
-                root[a] = root[root[a]]
-                a = root[a]
-            while root[b] != b:
-                root[b] = root[root[b]]
-                b = root[b]
-            if a != b:
-                if a < b:
-                    root[b] = a
-                else:
-                    root[a] = b
+            uf_union(root, r, b)
     labels = np.empty(n, np.int32)
     label_of_root = np.empty(n, np.int64)
     for r in range(n):

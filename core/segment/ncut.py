@@ -123,6 +123,8 @@ from scipy.spatial import cKDTree
 from ..errors import ParameterError
 from ..cloud import PointCloud
 from ..jit import njit
+from ..kernels.buckets import bucket_by_cell
+from ..kernels.unionfind import uf_union
 from ..progress import CancelCheck, Progress, check, report, scaled
 from ..tops import MIN_TREE_HEIGHT_M
 from .base import column_keys, ground_mask, label_columns_below, resolve_tops
@@ -1251,20 +1253,12 @@ def _pairs_within(xyz, query, r):
         cell *= 1.5
     ncell = gx * gy * gz
     cid = np.empty(n, dtype=np.int64)
-    start = np.zeros(ncell + 1, dtype=np.int64)
     for i in range(n):
         cx = min(int((xyz[i, 0] - lo[0]) / cell), gx - 1)
         cy = min(int((xyz[i, 1] - lo[1]) / cell), gy - 1)
         cz = min(int((xyz[i, 2] - lo[2]) / cell), gz - 1)
         cid[i] = (cx * gy + cy) * gz + cz
-        start[cid[i] + 1] += 1
-    for c in range(ncell):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    member = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        member[fill[cid[i]]] = i
-        fill[cid[i]] += 1
+    start, member = bucket_by_cell(cid, ncell)
     r2 = r * r
     out_i = np.empty(0, dtype=np.int64)
     out_j = np.empty(0, dtype=np.int64)
@@ -1313,17 +1307,7 @@ def _joined_to_top(a, b, vlabel, top_voxel, top_id):
     for e in range(len(a)):
         u, v = a[e], b[e]
         if vlabel[u] > 0 and vlabel[u] == vlabel[v]:
-            while root[u] != u:
-                root[u] = root[root[u]]
-                u = root[u]
-            while root[v] != v:
-                root[v] = root[root[v]]
-                v = root[v]
-            if u != v:
-                if u < v:
-                    root[v] = u
-                else:
-                    root[u] = v
+            uf_union(root, u, v)
     for i in range(m):                  # flatten: root[i] is i's representative
         r = i
         while root[r] != r:
