@@ -96,7 +96,9 @@ def _trixie_desktop_or_skip():
     if os.geteuid() != 0:
         pytest.skip("entering the .qgis-trixie root needs root (unshare + chroot)")
     probe = subprocess.run(["bash", str(TRIXIE_SETUP), "--run", "/bin/sh", "-c",
-                            "command -v qgis && command -v xvfb-run"], capture_output=True, text=True, timeout=60)
+                            "for c in qgis xvfb-run xauth; do command -v $c >/dev/null || { echo \"no $c in the root "
+                            "(rerun scripts/setup_qgis_trixie.sh after deleting .qgis-trixie/.sylva-desktop-installed)\"; "
+                            "exit 1; }; done"], capture_output=True, text=True, timeout=60)
     if probe.returncode != 0:
         pytest.skip(f"cannot run the QGIS 3.40 desktop in .qgis-trixie: {(probe.stdout + probe.stderr).strip()[-300:]}")
 
@@ -194,3 +196,10 @@ def test_the_trees_table_shows_rounded_values(desktop_report):
 
 def test_the_missing_packages_hint_names_a_python_inside_qgis(desktop_report):
     assert "python3" in Path(desktop_report["interpreter"]).name
+
+
+def test_the_pipeline_sets_the_project_terrain_in_a_newer_qgis(desktop_report):
+    """QGIS >= 3.26 has a project terrain (3.22 has none): the pipeline's run makes its DTM the terrain."""
+    if "terrain" not in desktop_report:
+        pytest.skip(f"QGIS {desktop_report['qgis']} has no project terrain (QgsProjectElevationProperties: 3.26+)")
+    assert desktop_report["terrain"] == ["raster", "DTM (terrain)"], desktop_report["terrain"]
