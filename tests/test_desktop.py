@@ -4,6 +4,11 @@
 reads back every widget, checks the algorithm accepts the values, presses Run and records the layers that
 appear in the project. Screenshots of the dialogs, their logs and the main window go to tests/artefacts/desktop/
 (git-ignored). QGIS_SETUP.md items 13-14 explain the set-up.
+
+Two lanes: Debian 12's QGIS 3.22 on the host, and Debian 13's QGIS 3.40 desktop inside the root ``.qgis-trixie``
+(``scripts/setup_qgis_trixie.sh`` installs it with Sylva's dependencies and warmed kernels; the script runs there
+under the root's own xvfb-run, screenshots in tests/artefacts/desktop-3.40/). The 3.40 lane skips, saying why,
+when the root, its desktop stage or root rights are missing.
 """
 from __future__ import annotations
 
