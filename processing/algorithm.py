@@ -60,6 +60,35 @@ _WKB = {("line", "zm"): QgsWkbTypes.MultiLineStringZM,
 _QVARIANT = {"integer": QVariant.LongLong, "real": QVariant.Double, "text": QVariant.String}
 
 
+
+#: pyproj's per-thread PROJ contexts, kept alive by OS thread (see keep_pyproj_context)
+_PYPROJ_CONTEXTS: dict = {}
+
+
+def keep_pyproj_context() -> None:
+    """Keep this OS thread's pyproj PROJ context alive after the algorithm returns.
+
+    pyproj >= 3.5 (Debian 13's 3.7) caches one PROJ context per OS thread (a pthread key) but owns it
+    through a ``threading.local``, which dies with the Python thread state. QGIS runs an algorithm in
+    a pooled QThread that enters Python with a fresh thread state each time, so after one run the
+    context was destroyed while the key still pointed to it, and the next run in the same thread
+    crashed QGIS 3.40 inside PROJ (``projCppContext::getDatabaseContext``, signal 11). Holding the
+    context's owner here, one per pool thread, keeps the pointer valid (a thread id reused by a new
+    thread replaces, and so frees, the dead thread's context). Older pyproj: nothing to do.
+    """
+    try:
+        import threading
+
+        from pyproj._context import get_context_manager
+    except ImportError:
+        return
+    try:
+        manager = get_context_manager()
+    except Exception:  # noqa: BLE001 — a pyproj without it
+        return
+    if manager is not None:
+        _PYPROJ_CONTEXTS[threading.get_native_id()] = manager
+
 class QgisFeedback(S.Feedback):
     def __init__(self, feedback):
         self.feedback = feedback
@@ -283,6 +312,12 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
         return None  # VECTOR_OUT: written through a sink after run()
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+        try:
+            return self._process(parameters, context, feedback)
+        finally:
+            keep_pyproj_context()
+
+    def _process(self, parameters, context, feedback):
         lacking = deps.missing()
         if lacking:
             raise QgsProcessingException(deps.install_hint(lacking))

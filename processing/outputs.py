@@ -51,15 +51,15 @@ class StyledOutput(QgsProcessingLayerPostProcessorInterface):
 
     _instances: dict = {}
 
-    def __init__(self, qml, visible: bool, bottom: bool):
+    def __init__(self, qml, visible: bool, bottom: bool, terrain: bool = False):
         super().__init__()
-        self.qml, self.visible, self.bottom = qml, visible, bottom
+        self.qml, self.visible, self.bottom, self.terrain = qml, visible, bottom, terrain
 
     @classmethod
-    def get(cls, style, visible: bool = True, bottom: bool = False) -> "StyledOutput":
-        key = (style, visible, bottom)
+    def get(cls, style, visible: bool = True, bottom: bool = False, terrain: bool = False) -> "StyledOutput":
+        key = (style, visible, bottom, terrain)
         if key not in cls._instances:
-            cls._instances[key] = cls(str(STYLES / style) if style else None, visible, bottom)
+            cls._instances[key] = cls(str(STYLES / style) if style else None, visible, bottom, terrain)
         return cls._instances[key]
 
     def postProcessLayer(self, layer, context, feedback):  # noqa: N802
@@ -77,6 +77,8 @@ class StyledOutput(QgsProcessingLayerPostProcessorInterface):
                 parent.removeChildNode(node)
                 node = clone
             node.setItemVisibilityChecked(self.visible)
+        if self.terrain and project is not None:
+            _project_terrain(project, layer)
         layer.triggerRepaint()
 
 
@@ -108,10 +110,9 @@ def load_on_completion(algorithm_id: str, files: dict, values: dict, context) ->
     for key, _file, name, style, visible in RUN_RASTERS:
         path = files.get(key)
         if path and Path(path).is_file():
-            _add(context, path, name, QgsProcessingUtils.LayerHint.Raster, StyledOutput.get(style, visible, True))
+            _add(context, path, name, QgsProcessingUtils.LayerHint.Raster,
+                 StyledOutput.get(style, visible, True, terrain=key == "DTM"))
             added.append(path)
-    if files.get("DTM"):
-        _project_terrain(context.project(), files["DTM"])
     return added
 
 
@@ -125,8 +126,12 @@ def _gpkg_layers(path) -> set:
         return set()
 
 
-def _project_terrain(project, dtm: str) -> None:
-    """QGIS >= 3.26: the project's terrain becomes the DTM once it is loaded (3.22 has no project terrain)."""
+def _project_terrain(project, layer) -> None:
+    """QGIS >= 3.26: the project's terrain becomes the DTM ``layer`` (3.22 has no project terrain).
+
+    Called from the DTM's post-processor, on the main thread once QGIS has loaded the layer: an earlier
+    form connected to ``layersAdded`` from ``processAlgorithm``, i.e. from the dialog's worker thread
+    (a Python slot then lives in that thread), and QGIS 3.40's dialog left the terrain flat."""
     props = getattr(project, "elevationProperties", None)
     if props is None:
         return
@@ -134,14 +139,6 @@ def _project_terrain(project, dtm: str) -> None:
         from qgis.core import QgsRasterDemTerrainProvider
     except ImportError:  # pragma: no cover - QGIS < 3.26
         return
-
-    def on_added(layers):
-        for layer in layers:
-            if Path(layer.source()).resolve() == Path(dtm).resolve():
-                provider = QgsRasterDemTerrainProvider()
-                provider.setLayer(layer)
-                project.elevationProperties().setTerrainProvider(provider)
-                project.layersAdded.disconnect(on_added)
-                return
-
-    project.layersAdded.connect(on_added)
+    provider = QgsRasterDemTerrainProvider()
+    provider.setLayer(layer)
+    props().setTerrainProvider(provider)

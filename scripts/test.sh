@@ -5,15 +5,16 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/setup.sh" --viewers
 # QGIS >= 3.34 (Debian 13's, in the separate root .qgis-trixie) for tests/test_tiled_scene.py: the
-# tiled scene layer that opens our 3D Tiles. About 3.5 min and 1.7 GB the first time, ~0 s after.
+# tiled scene layer that opens our 3D Tiles; and its 3.40 desktop with Sylva's dependencies for the 3.40
+# lane of tests/test_desktop.py. About 2.5 min and 2.1 GB the first time, ~0 s after.
 # Needs root; SYLVA_QGIS_TRIXIE=0 leaves it out (those tests then skip). A failed download is reported
 # and the rest of the suite still runs (those tests skip, saying why).
 if [ "${SYLVA_QGIS_TRIXIE:-1}" != 0 ]; then
     if [ "$(id -u)" -eq 0 ]; then
         bash "$root/scripts/setup_qgis_trixie.sh" || echo "test: WARNING: QGIS >= 3.34 root not installed" \
-            "(see ${TMPDIR:-/tmp}/sylva-qgis-trixie.log): tests/test_tiled_scene.py will skip" >&2
+            "(see ${TMPDIR:-/tmp}/sylva-qgis-trixie.log): tests/test_tiled_scene.py and the 3.40 dialogs will skip" >&2
     else
-        echo "test: not root, so no QGIS >= 3.34 root (.qgis-trixie): tests/test_tiled_scene.py will skip" >&2
+        echo "test: not root, so no QGIS >= 3.34 root (.qgis-trixie): tests/test_tiled_scene.py and the 3.40 dialogs will skip" >&2
     fi
 fi
 cd "$root"

@@ -703,3 +703,26 @@ def test_real_ahn3_text():
     with pytest.raises(CRSError, match="ahn3_delft.xyz has no CRS"):
         require_crs(cloud)
     assert read_cloud(path, crs="EPSG:28992").crs.to_epsg() == 28992
+
+
+def test_a_lazrs_panic_at_the_end_of_the_data_is_the_end():
+    """lazrs 0.6 (laspy 2.5's backend, Debian 13's) panics past the last chunk instead of raising: a pyo3
+    PanicException, a BaseException; it means the same end of the data, while Ctrl-C still propagates."""
+    from types import SimpleNamespace
+
+    from sylva.core.io.las import _check_no_more_points
+
+    class PanicException(BaseException):
+        pass
+
+    def reader(exc):
+        def decompress_many(buf):
+            raise exc
+        return SimpleNamespace(point_source=SimpleNamespace(decompressor=SimpleNamespace(
+            decompress_many=decompress_many)))
+
+    header = SimpleNamespace(are_points_compressed=True, point_format=SimpleNamespace(size=30), point_count=5)
+    _check_no_more_points(reader(PanicException("slice index starts at 3 but ends at 2")), "x.laz", header)
+    _check_no_more_points(reader(RuntimeError("end")), "x.laz", header)
+    with pytest.raises(KeyboardInterrupt):
+        _check_no_more_points(reader(KeyboardInterrupt()), "x.laz", header)

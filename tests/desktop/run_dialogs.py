@@ -32,6 +32,11 @@ def finish():
     try:
         layers = list(QgsProject.instance().mapLayers().values())
         report["project_layers"] = [[layer.name(), layer.type(), layer.isValid()] for layer in layers]
+        props = getattr(QgsProject.instance(), "elevationProperties", None)   # QGIS >= 3.26: the project terrain
+        if props is not None:
+            terrain = props().terrainProvider()
+            dem = terrain.layer() if hasattr(terrain, "layer") else None
+            report["terrain"] = [terrain.type(), dem.name() if dem is not None else None]
         canvas = iface.mapCanvas()
         root = QgsProject.instance().layerTreeRoot()
         for layer in layers:   # the 2D map of the results: crowns and tops over nothing else
