@@ -59,8 +59,6 @@ _WKB = {("line", "zm"): QgsWkbTypes.MultiLineStringZM,
         ("none", True): QgsWkbTypes.NoGeometry, ("none", False): QgsWkbTypes.NoGeometry}
 _QVARIANT = {"integer": QVariant.LongLong, "real": QVariant.Double, "text": QVariant.String}
 
-
-
 #: pyproj's per-thread PROJ contexts, kept alive by OS thread (see keep_pyproj_context)
 _PYPROJ_CONTEXTS: dict = {}
 
@@ -88,6 +86,7 @@ def keep_pyproj_context() -> None:
         return
     if manager is not None:
         _PYPROJ_CONTEXTS[threading.get_native_id()] = manager
+
 
 class QgisFeedback(S.Feedback):
     def __init__(self, feedback):
