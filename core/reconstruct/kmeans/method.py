@@ -17,8 +17,8 @@ from ...progress import CancelCheck, Progress, check, report
 from ..model import Reconstruction, TreePoints, screen
 from .branches import branch_structure
 from .bspline import DenseModel, model_branches, prune_branches
-from .refit import (inside_parent_radii, keep_branches, outside_earlier_branches, radii_from_cylinders,
-                    recentre, skeleton_from)
+from .refit import (inside_parent_radii, keep_branches, outside_earlier_branches, radii_from_cylinders, recentre,
+                    skeleton_from)
 from .segmentation import segment
 
 
@@ -29,21 +29,13 @@ from .segmentation import segment
 #: pulses/m² (testing.synth) put it at 0.57–0.81 / 0.27–0.41 / 0.14–0.23 m; the
 #: TLS trees of ../shared/data/tls at 0.03–0.19 m.
 DENSE_SPACING_M = 0.25
-
-
 #: Share of the points within ``DENSE_LOW_M`` above the tree's lowest point at
 #: or above which the lower stem is seen, as from the ground.  Airborne trees
 #: of testing.synth (20–400 pulses/m²): at most 2.2 %; the TLS trees: 3.6–25 %.
 DENSE_LOW_SHARE = 0.03
-
-
 DENSE_LOW_M = 2.0
-
-
 #: A dense scan also needs this many points (too few points carry no branches).
 DENSE_MIN_POINTS = 2000
-
-
 #: Median distance (m) to the k-th (8th) neighbour above which a dense-scan model is
 #: flagged ``sparse_scan``: branches thinner than that spacing get guessed radii, and
 #: volumes are not to be trusted (TLS tree13 of ../shared/data/tls: 0.19 m; trees 1

@@ -18,8 +18,6 @@ from ...progress import CancelCheck, Progress, check, report
 
 
 _EPS = 1e-12
-
-
 #: Lloyd re-floods only the clusters whose seed moved (and their neighbours) on graphs of
 #: more points than this; smaller graphs are flooded whole, which is faster there.
 LOCAL_FLOOD_MIN_POINTS = 100_000
