@@ -196,7 +196,8 @@ def test_fast_paths_equal_the_straightforward_computations():
     from scipy import ndimage
     from sklearn.mixture import GaussianMixture
 
-    from sylva.core.reconstruct import billboard as bbm
+    from sylva.core.reconstruct.billboard import shape as bbm
+    from sylva.core.reconstruct.billboard import texture as bbt
 
     rng = np.random.default_rng(3)
     for r in (1, 3, 7, 12):                      # closing by exact discs
@@ -228,14 +229,14 @@ def test_fast_paths_equal_the_straightforward_computations():
     # EM: the labels of scikit-learn's GaussianMixture with the same seed
     rgb = np.vstack([rng.normal((0.2, 0.47, 0.16), 0.03, (3000, 3)), rng.normal((0.47, 0.67, 0.92), 0.03, (800, 3))])
     rgb = np.clip(rgb, 0, 1)
-    feats = bbm._hsv_cone(rgb)
+    feats = bbt._hsv_cone(rgb)
     train = feats[np.sort(np.random.default_rng(11).choice(len(rgb), 1500, replace=False))]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         gmm = GaussianMixture(2, covariance_type="diag", max_iter=50, reg_covar=1e-4, init_params="k-means++",
                               random_state=11).fit(train)
     ref = gmm.predict(feats) == int(np.argmin(np.linalg.norm(gmm.means_ - feats.mean(axis=0), axis=1)))
-    keep = bbm.gmm_clean(rgb, 2, 11)
+    keep = bbt.gmm_clean(rgb, 2, 11)
     np.testing.assert_array_equal(keep, ref)
     assert keep[:3000].all() and not keep[3000:].any()
 

@@ -1,4 +1,4 @@
-"""Guided growth (Guo et al. 2018 §5.2, §6.1): core/reconstruct/colonize.py."""
+"""Guided growth (Guo et al. 2018 §5.2, §6.1): core/reconstruct/colonize/."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""The compiled guided-growth loop (core/reconstruct/colonize.py, ``_grow_kernel``) is exact.
+"""The compiled guided-growth loop (core/reconstruct/colonize/growth.py, ``grow_kernel``) is exact.
 
 Guo et al. 2018 §5.2 space colonisation was vectorised numpy with a per-iteration
 ``cKDTree`` until the loop moved into a numba kernel.  The kernel must give the
@@ -18,9 +18,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from sylva.core.progress import CancelCheck, Progress, check, report
-from sylva.core.reconstruct import colonize
-from sylva.core.reconstruct.colonize import (_DOWN, _K_BUDS, _STALL_LIMIT, _UP, GuidedGrowth, _Nodes,
-                                             _unit, influence_distance)
+from sylva.core.reconstruct.colonize import GuidedGrowth, influence_distance
+from sylva.core.reconstruct.colonize import markers as col_markers
+from sylva.core.reconstruct.colonize import method as col_method
+from sylva.core.reconstruct.colonize.growth import _K_BUDS, _STALL_LIMIT, Nodes
+from sylva.core.reconstruct.colonize.method import _DOWN, _UP, _unit
 from sylva.core.reconstruct.model import TreePoints
 from sylva.testing.synth import CROWN, STEM, ScanSpec, StandSpec, make_stand, simulate_scan
 
@@ -33,7 +35,7 @@ class NumpyGrowth(GuidedGrowth):
         d, _ = cKDTree(nodes).query(xyz, distance_upper_bound=self.kill_distance_m * (1 + 1e-9))
         return float(np.isfinite(d).mean()) if len(xyz) else 0.0
 
-    def _grow(self, nodes: _Nodes, markers: np.ndarray, weight: np.ndarray, n_measured: int,
+    def _grow(self, nodes: Nodes, markers: np.ndarray, weight: np.ndarray, n_measured: int,
               height_m: float, progress: Progress, cancelled: CancelCheck):
         """Iterate space colonisation until no marker is left; returns (iterations, reason).
 
@@ -276,26 +278,26 @@ def test_kernel_equals_numpy_formulation(pinned_cases):
 def test_reallocation_and_roll_table_refill_change_nothing(pinned_cases, monkeypatch):
     """Tiny initial node arrays and roll tables: the kernel grows them (code 5 re-runs an iteration)."""
     codes = []
-    kernel = colonize._grow_kernel
+    kernel = col_method.grow_kernel
 
     def spy(*args):
         res = kernel(*args)
         codes.append(int(res[-1]))
         return res
 
-    class SmallNodes(colonize._Nodes):
+    class SmallNodes(Nodes):
         def __init__(self, cap=256):
             super().__init__(4)
 
-    tables = colonize._roll_tables
+    tables = col_method.roll_tables
 
     def short_first(roll, size):           # the first table of every tree is too short
         cos, sin = tables(roll, size)
         return (cos[:1], sin[:1]) if size < 10 else (cos, sin)
 
-    monkeypatch.setattr(colonize, "_grow_kernel", spy)
-    monkeypatch.setattr(colonize, "_Nodes", SmallNodes)
-    monkeypatch.setattr(colonize, "_roll_tables", short_first)
+    monkeypatch.setattr(col_method, "grow_kernel", spy)
+    monkeypatch.setattr(col_method, "Nodes", SmallNodes)
+    monkeypatch.setattr(col_method, "roll_tables", short_first)
     for name, kw, tree, ref in pinned_cases:
         codes.clear()
         assert digest(GuidedGrowth(**kw).reconstruct(tree)) == ref, name
@@ -305,8 +307,10 @@ def test_reallocation_and_roll_table_refill_change_nothing(pinned_cases, monkeyp
 
 def test_pure_python_kernels_match(pinned_cases, monkeypatch):
     """Without numba (``SYLVA_NO_JIT``) the same code runs as Python: same skeleton."""
-    for name in ("_grow_kernel", "_inside_hull_kernel", "_pca_cov_kernel", "_near_any_kernel"):
-        monkeypatch.setattr(colonize, name, getattr(colonize, name).py_func)
+    for module, name in ((col_method, "grow_kernel"), (col_markers, "_inside_hull_kernel"),
+                         (col_markers, "_pca_cov_kernel"), (col_markers, "near_any_kernel"),
+                         (col_method, "near_any_kernel")):
+        monkeypatch.setattr(module, name, getattr(module, name).py_func)
     name, kw, tree, ref = next(c for c in pinned_cases if c[0] == "shrub")
     assert digest(GuidedGrowth(**kw).reconstruct(tree)) == ref
 
@@ -320,7 +324,7 @@ def test_inside_hull_kernel_equals_einsum_test():
     q = rng.normal(size=(20000, 3)) * [4.0, 3.0, 7.0] + [100.0, -50.0, 300.0]
     eq = hull.equations
     ref = (np.einsum("ni,fi->nf", q, eq[:, :3]) + eq[:, 3] <= 1e-9).all(axis=1)
-    got = colonize._inside_hull(hull, q)
+    got = col_markers._inside_hull(hull, q)
     assert 0.2 < ref.mean() < 0.9
     np.testing.assert_array_equal(got, ref)
 
@@ -333,7 +337,7 @@ def test_pca_covariance_kernel_equals_einsum():
     nb = xyz[idx]
     c = nb - nb.mean(axis=1, keepdims=True)
     ref = np.einsum("nki,nkj->nij", c, c) / 10
-    np.testing.assert_array_equal(colonize._pca_cov_kernel(xyz, idx.astype(np.int64)), ref)
+    np.testing.assert_array_equal(col_markers._pca_cov_kernel(xyz, idx.astype(np.int64)), ref)
 
 
 @pytest.mark.parametrize("r", [0.15, 0.5, 3.0])
@@ -343,7 +347,7 @@ def test_near_any_kernel_equals_kdtree_bound(r):
     centres = np.r_[rng.normal(size=(500, 3)), rng.normal(size=(50, 3)) * 20.0] + [10.0, -4.0, 250.0]
     points = rng.normal(size=(5000, 3)) * 6.0 + [10.0, -4.0, 250.0]
     d, _ = cKDTree(centres).query(points, distance_upper_bound=r)
-    got = colonize._near_any_kernel(points, centres, r)
+    got = col_markers.near_any_kernel(points, centres, r)
     assert got.any() and not got.all()
     np.testing.assert_array_equal(got, np.isfinite(d))
-    assert not colonize._near_any_kernel(points, centres[:0], r).any()
+    assert not col_markers.near_any_kernel(points, centres[:0], r).any()

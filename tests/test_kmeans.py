@@ -1,4 +1,4 @@
-"""Yan et al. 2009 variational k-means branch reconstruction (core/reconstruct/kmeans.py)."""
+"""Yan et al. 2009 variational k-means branch reconstruction (core/reconstruct/kmeans/)."""
 from pathlib import Path
 
 import numpy as np
@@ -283,7 +283,7 @@ def test_refit_model_is_close_to_the_surface_and_the_volume(branched):
 
 
 def test_branch_running_inside_its_parent_is_trimmed():
-    from sylva.core.reconstruct.kmeans import _trim_in_parent
+    from sylva.core.reconstruct.kmeans.bspline import _trim_in_parent
 
     parent = np.array([[0, 0, 0.0], [0, 0, 2.0], [0, 0, 4.0]])
     prad = np.array([0.2, 0.2, 0.2])
@@ -301,7 +301,7 @@ def test_branch_running_inside_its_parent_is_trimmed():
 def test_fast_kernels_match_the_reference():
     from scipy import sparse
 
-    from sylva.core.reconstruct.kmeans import _flood, _smallest_eigvec, _subgraph
+    from sylva.core.reconstruct.kmeans.segmentation import _flood, _smallest_eigvec, _subgraph
 
     rng = np.random.default_rng(3)
     x = rng.normal(size=(4000, 9, 3)) * np.array([1.0, 0.4, 0.02])

@@ -1,4 +1,4 @@
-"""The compiled parts of the normalised cut (core/segment/ncut.py, Hu et al. 2017 §4.1) are exact.
+"""The compiled parts of the normalised cut (core/segment/ncut/, Hu et al. 2017 §4.1) are exact.
 
 The multi-source Dijkstra, the two-tree sub-problems (submatrix, degrees, the
 normalised Laplacian's products inside LOBPCG, Shi & Malik's threshold search)
@@ -22,6 +22,9 @@ from sylva.core.jit import njit
 from sylva.core.segment import NormalizedCut
 from sylva.core.segment.base import ground_mask
 from sylva.core.segment import ncut as N
+from sylva.core.segment.ncut import cleanup as NC
+from sylva.core.segment.ncut import cut as NX
+from sylva.core.segment.ncut import graph as NG
 from sylva.core.segment.ncut import FIEDLER_ITERATIONS, voxel_graph
 
 
@@ -265,7 +268,7 @@ def stand():
     graph = voxel_graph(cloud, cloud.local_xyz(), h, crown, params)
     rng = np.random.default_rng(5)
     tops = np.sort(rng.choice(graph.n, 40, replace=False))
-    region = N._geodesic_partition(graph, tops, params.climb)
+    region = NX._geodesic_partition(graph, tops, params.climb)
     a, b = graph.edges[:, 0], graph.edges[:, 1]
     ra, rb = region[a], region[b]
     touch = (ra >= 0) & (rb >= 0) & (ra != rb)
@@ -284,7 +287,7 @@ def test_dijkstra_equals_reference(stand):
 
 def test_pair_ncut_equals_reference(stand):
     _, graph, tops, region, pairs, _ = stand
-    got = N._pair_ncut(graph, region, pairs, len(tops))
+    got = NX._pair_ncut(graph, region, pairs, len(tops))
     ref = reference_pair_ncut(graph, region, pairs, len(tops))
     assert len(pairs) > 40
     for g, r in zip(got, ref):
@@ -302,7 +305,7 @@ def test_two_tree_subproblems_equal_reference(stand):
     sizes = []
     for p, q in pairs:
         nodes = np.sort(np.concatenate([order[starts[p + 1]:starts[p + 2]], order[starts[q + 1]:starts[q + 2]]]))
-        pair = N._Pair(*N._pair_subgraph(W.indptr, W.indices, W.data, nodes, local))
+        pair = NX._Pair(*NX._pair_subgraph(W.indptr, W.indices, W.data, nodes, local))
         sub = reference_submatrix(W, nodes, local)
         assert (local == -1).all()
         np.testing.assert_array_equal(pair.indptr, sub.indptr)
@@ -315,9 +318,9 @@ def test_two_tree_subproblems_equal_reference(stand):
             continue
         ia, ib = int(np.searchsorted(nodes, tops[p])), int(np.searchsorted(nodes, tops[q]))
         start = np.where(region[nodes] == p, -1.0, 1.0)
-        x = N._fiedler(pair, start)
+        x = NX._fiedler(pair, start)
         np.testing.assert_array_equal(x, reference_fiedler(sub, deg, start))
-        side, ncut = N._best_split(pair, x, ia, ib)
+        side, ncut = NX._best_split(pair, x, ia, ib)
         side_ref, ncut_ref = reference_best_split(sub, deg, x, ia, ib)
         np.testing.assert_array_equal(side, side_ref)
         assert ncut == ncut_ref
@@ -335,9 +338,9 @@ def test_laplacian_times_equals_assembled_product():
     A.sort_indices()
     X = rng.normal(size=(n, 3))
     L = (sp.identity(n, format="csr") - A).tocsr()
-    got = N._laplacian_times(A.indptr, A.indices, A.data, X)
+    got = NX._laplacian_times(A.indptr, A.indices, A.data, X)
     np.testing.assert_array_equal(got, L @ X)
-    np.testing.assert_array_equal(N._laplacian_times(A.indptr, A.indices, A.data, X[:, :1])[:, 0], L @ X[:, 0])
+    np.testing.assert_array_equal(NX._laplacian_times(A.indptr, A.indices, A.data, X[:, :1])[:, 0], L @ X[:, 0])
 
 
 def test_segmentation_unchanged_by_the_kernels(stand, monkeypatch):
@@ -355,10 +358,10 @@ def test_segmentation_unchanged_by_the_kernels(stand, monkeypatch):
         sub = sp.csr_matrix((pair.data, pair.indices, pair.indptr), shape=(n, n))
         return reference_best_split(sub, pair.deg, x, a, b)
 
-    monkeypatch.setattr(N, "_fiedler", ref_fiedler)
-    monkeypatch.setattr(N, "_best_split", ref_split)
-    monkeypatch.setattr(N, "_pair_ncut", reference_pair_ncut)
-    monkeypatch.setattr(N, "_nearest_source", reference_nearest_source)
+    monkeypatch.setattr(NX, "_fiedler", ref_fiedler)
+    monkeypatch.setattr(NX, "_best_split", ref_split)
+    monkeypatch.setattr(NX, "_pair_ncut", reference_pair_ncut)
+    monkeypatch.setattr(NX, "_nearest_source", reference_nearest_source)
     ref = N.NormalizedCut().segment(cloud)
     assert len(np.unique(got)) > 15
     np.testing.assert_array_equal(got, ref)
@@ -382,7 +385,7 @@ def test_clean_kernels_equal_scipy(stand):
     _, frag = connected_components(G, directed=False)
     good = np.zeros(frag.max() + 1, dtype=bool)
     good[frag[tops]] = vlabel[tops] == top_id
-    got = N._joined_to_top(a, b, vlabel, tops.astype(np.int64), top_id)
+    got = NC._joined_to_top(a, b, vlabel, tops.astype(np.int64), top_id)
     assert 0.3 < got.mean() < 0.95
     np.testing.assert_array_equal(got, good[frag])
 
@@ -390,7 +393,7 @@ def test_clean_kernels_equal_scipy(stand):
     for r in (0.7, 2.0):
         near = cKDTree(graph.xyz[free]).sparse_distance_matrix(cKDTree(graph.xyz), r, output_type="ndarray")
         ref = (free[near["i"]], near["j"].astype(np.int64), near["v"])
-        mine = N._pairs_within(graph.xyz, free, r)
+        mine = NC._pairs_within(graph.xyz, free, r)
         o1, o2 = np.lexsort(ref[::-1]), np.lexsort(mine[::-1])
         assert len(ref[0]) > 100
         for x, y in zip(ref, mine):
@@ -398,7 +401,7 @@ def test_clean_kernels_equal_scipy(stand):
 
 
 def test_column_maxima_grid_equals_sorts():
-    """The grid of :func:`_column_maxima` picks what the two stable sorts picked, ties included."""
+    """The grid of :func:`~sylva.core.segment.ncut.graph.column_maxima` picks what the two stable sorts picked, ties included."""
     rng = np.random.default_rng(9)
     xy = rng.uniform(0, 40, size=(20000, 2))
     z = np.round(rng.uniform(0, 30, size=20000), 1)          # many exact ties
@@ -407,9 +410,9 @@ def test_column_maxima_grid_equals_sorts():
     key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     order = np.argsort(-z, kind="stable")
     _, first = np.unique(key[order], return_index=True)
-    np.testing.assert_array_equal(N._column_maxima(xy, z, 0.35), np.sort(order[first]))
+    np.testing.assert_array_equal(NG.column_maxima(xy, z, 0.35), np.sort(order[first]))
     far = np.r_[xy, [[1e6, 1e6]]]                             # a huge extent takes the sorting path
-    assert len(N._column_maxima(far, np.r_[z, 1.0], 0.35)) == len(first) + 1
+    assert len(NG.column_maxima(far, np.r_[z, 1.0], 0.35)) == len(first) + 1
 
 
 def reference_tops_of(xy, height, labels):
@@ -430,9 +433,9 @@ def test_tops_of_equals_the_sort():
     xy = np.round(rng.uniform(0, 20, size=(n, 2)), 0)        # many equal x and y
     h = np.round(rng.uniform(0, 5, size=n), 0)               # many equal heights
     labels = rng.choice(np.array([0, 1, 2, 5, 9, 40, 41, 300]), size=n).astype(np.int32)
-    for a, b in zip(reference_tops_of(xy, h, labels), N._tops_of(xy, h, labels)):
+    for a, b in zip(reference_tops_of(xy, h, labels), NC._tops_of(xy, h, labels)):
         np.testing.assert_array_equal(a, b)
-    ids, _, _ = N._tops_of(xy, h, labels)
+    ids, _, _ = NC._tops_of(xy, h, labels)
     assert ids.tolist() == [1, 2, 5, 9, 40, 41, 300]
     none = np.zeros(n, dtype=np.int32)
-    assert all(len(v) == 0 for v in N._tops_of(xy, h, none))
+    assert all(len(v) == 0 for v in NC._tops_of(xy, h, none))

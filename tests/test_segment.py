@@ -327,7 +327,8 @@ def test_mixed_conifer_agrees_with_lidr_when_available():
 def test_start_boundary_ncut_and_saddle_match_eq1():
     """The vectorised per-pair NCut (Hu et al. Eq. 1) and saddle height equal a direct count."""
     from sylva.core.segment.base import ground_mask
-    from sylva.core.segment.ncut import _pair_ncut, voxel_graph
+    from sylva.core.segment.ncut import voxel_graph
+    from sylva.core.segment.ncut.cut import _pair_ncut
 
     cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
     h = cloud.attrs["height"]
@@ -346,14 +347,14 @@ def test_start_boundary_ncut_and_saddle_match_eq1():
 
 
 def test_top_search_on_column_maxima_keeps_the_highest_point_per_column():
-    from sylva.core.segment.ncut import _column_maxima
+    from sylva.core.segment.ncut.graph import column_maxima
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 3, size=(500, 2))
     z = rng.uniform(0, 10, size=500)
     z[7] = z[8] = 20.0       # a tie: the lower index wins
     xy[8] = xy[7]
-    keep = _column_maxima(xy, z, 0.5)
+    keep = column_maxima(xy, z, 0.5)
     cells = np.floor(xy / 0.5).astype(int)   # cells on the local frame's grid, not the points' extent
     for cell in np.unique(cells, axis=0):
         members = np.flatnonzero((cells == cell).all(axis=1))
@@ -471,7 +472,8 @@ def test_geodesic_partition_equals_scipy_dijkstra():
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
     from sylva.core.segment.base import ground_mask
-    from sylva.core.segment.ncut import _geodesic_partition, voxel_graph
+    from sylva.core.segment.ncut import voxel_graph
+    from sylva.core.segment.ncut.cut import _geodesic_partition
 
     cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
     h = cloud.attrs["height"]

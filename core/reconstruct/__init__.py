@@ -7,8 +7,8 @@
 
 A method is a small frozen dataclass of its parameters with a
 ``reconstruct(tree, progress=None, cancelled=None) -> Reconstruction`` method;
-adding a method adds a module (``skeleton.py``: Hu et al. 2017;
-``colonize.py``: Guo et al. 2018; ``hybrid.py``: Hu §6.2's rule, the greedy
+adding a method adds a module or package (``skeleton.py``: Hu et al. 2017;
+``colonize/``: Guo et al. 2018; ``hybrid.py``: Hu §6.2's rule, the greedy
 skeleton with guided growth as the fallback, the default), not a branch here.
 
 Trees too small or too degenerate to model (fewer than ``min_points``

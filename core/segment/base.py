@@ -1,6 +1,6 @@
 """What every segmentation method shares: input checks, tree tops, ground, and the columns under crowns.
 
-The rules these helpers implement are listed in :mod:`sylva.core.segment`; the methods (ncut.py,
+The rules these helpers implement are listed in :mod:`sylva.core.segment`; the methods (ncut/,
 chm.py) import them from here, and the package imports the methods: every import runs downward.
 """
 from __future__ import annotations

@@ -1,0 +1,124 @@
+"""Normalised-cut tree segmentation on a voxel graph (Hu et al. 2017, §4.1).
+
+Hu, Li, Zhang, Xie, Wang, Guo, Xiao, Su (2017), "Efficient tree modeling from
+airborne LiDAR point clouds", Computers & Graphics 67, §4.1 and §6.1.
+
+Steps
+-----
+1. **Voxels.** Points at least ``min_height_m`` above ground are binned into
+   cubes of pitch ``voxel_m`` (the paper's d_s; 0.7 m for 36 k points, 0.9 m
+   for 3.7 M points, §6.1) in the local metric frame, z = height above ground
+   (so huge UTM coordinates and sloping terrain do not matter).  A voxel's
+   features are the mean local (x, y, height), the mean intensity and the
+   mean RGB colour when the cloud has them.
+2. **Graph (Eq. 2).** The paper writes ``w_ij = e^{-H} e^{-V} e^{-I} e^{-C}``
+   without scales; we use
+
+       w_ij = exp(-H/σ_h) · exp(-V/σ_v) · exp(-I/σ_i) · exp(-C/σ_c)
+
+   with H, V the horizontal and vertical distances of the voxel means
+   (metres), I the absolute difference of the voxels' mean natural-log
+   intensities (a ratio of intensities: free of the sensor's units and of any
+   statistic of the tile, so tiling does not change the weights; the
+   inter-quartile range of ln I is about 1 on lidR's MixedConifer and on the
+   synthetic stands), and C the Euclidean distance of mean colours scaled to
+   [0, 1].  The exponent stays linear in the distance
+   as Eq. 2 writes it (not squared as in Shi & Malik's Gaussian kernel); the
+   σ's carry the units the paper leaves implicit (``sigma_h_m``,
+   ``sigma_v_m``, ``sigma_intensity``, ``sigma_colour``).  w_ij = 0 beyond
+   r^xz = ``radius_m``; to keep the graph sparse the cylinder of Eq. 2 is
+   cut to the inscribed ellipsoid of half height ``height_m``
+   (``cKDTree.query_pairs`` on z-scaled coordinates); steep conifer apices
+   stay connected, far-apart layers are not joined.  No dense
+   matrix is ever built.
+3. **Tops and start.** Unless given, tree tops are the local maxima of
+   :func:`sylva.core.tops.find_tree_tops` (fixed window ``top_window_m``,
+   small on purpose: surplus tops are merged in step 4) searched among the
+   highest point of each ``TOP_CELL_M`` column only (every top is such a
+   point; a canopy-surface thinning that makes the search several times
+   faster).  Two Sylva additions (not in Hu et al.), measured with
+   ``benchmarks/segmentation.py``: at low point density the window is
+   widened until it holds ``top_window_points`` canopy points (first returns
+   per m² of canopy, so a local maximum is not a sampling accident: 2.7 m on
+   lidR's MixedConifer at 4.3 points/m²), and the steep-apex rule
+   (:class:`sylva.core.tops.SteepApex`: ``apex_window_m``, ``apex_slope``,
+   ``apex_sectors``) adds the tips of narrow conifers that a taller
+   neighbour overtops within the window, the main loss of recall in dense
+   stands.  Every voxel gets the tree top nearest to it along the graph
+   (multi-source Dijkstra); a step costs the Eq. 2 dissimilarity -log w_ij
+   plus ``climb`` x the height it gains, so a region runs down its own crown
+   and stops at the crease where the neighbouring crown rises again.  Voxels
+   of components without a top are not reached (isolated noise).
+4. **Cuts (Eq. 1).** The problem is split into independent two-tree
+   sub-problems.  The NCut of the start boundary of every pair of touching
+   regions is computed at once (edge sums); pairs whose start boundary
+   already costs less than ``SETTLED_NCUT`` are clearly separate crowns and
+   are left as they are.  For the others, the generalised eigenproblem
+   (D − W) x = λ D x of their union (normalised Laplacian, LOBPCG from the
+   current boundary, ``scipy.linalg.eigh`` for tiny problems) gives the
+   Fiedler vector, and Shi & Malik's threshold search finds the split with
+   the smallest NCut(A, B) that keeps each top on its own side.  The new
+   boundary replaces the old one only if its NCut is lower.  The best cut of
+   a pair (the lower of the Fiedler split and the start boundary) says
+   whether the two regions are one tree with two local maxima: the lower top
+   is merged into the higher one (which keeps its id) when it costs more than
+   ``always_merge_ncut``, or more than ``merge_ncut`` while the crowns dip
+   between the two tops by less than ``merge_dip`` x the lower top's height
+   (the dip is measured to the saddle, the highest voxel edge across their
+   boundary).  Hu §4.1 lets the cut, not a root point per tree, decide the
+   number of trees; the NCut value alone does not separate a surplus top on
+   one crown (its cut is expensive, but so is the cut between two trees of
+   a dense, interlocking canopy), the saddle depth does (a Sylva addition,
+   not in Hu et al.): measured on the
+   synthetic stands, the dip of a surplus top is 0.6–3.4 % of the lower top
+   (10th–90th percentile), that of two trees 3–33 %.  A lower top that
+   qualifies for merging with several neighbours joins only the one across
+   the highest saddle (smallest dip), so a surplus top lying between two
+   trees does not chain them into one.  Each sub-problem holds
+   two crowns, so time and memory grow linearly with the tile.
+   **Crown-reach merge** (issue 16; Sylva, not in Hu et al.): the cut
+   cannot tell a leaf clump, a second leader or a flat crown's bump from a
+   tree, as its crown is wide and the cut between its halves cheap.  A pair
+   of touching regions (settled or not) is one tree when the lower top lies
+   within ``merge_reach`` x the crown radius the higher top's height implies
+   (half the crown width of Popescu & Wynne 2004, CW = 2.51503 + 0.00901 h²,
+   :func:`crown_radius_m`) and rises less than ``merge_prominence`` x its
+   height above their saddle (the prominence of the EBImage/lidR watershed's
+   ``tol``, relative to height).  Measured on 2,530 pairs of the extended
+   suite (``sylva/testing/crowns.py``) and testing/synth's dense conifers: pairs
+   of one tree lie at 0.06-0.17 x the higher top's height (10th-90th
+   percentile), pairs of two trees at 0.13-0.33; reach 0.7 and prominence 0.15
+   merge 1,599 of 2,022 same-tree pairs and 123 of 508 two-tree pairs (the
+   old rule alone: 1,359 and 103); a reach of 1.0 merges more on broadleaves
+   but joins dense conifers (net gain there 55 -> 16 pairs).  Two tops of
+   nearly one height (differing by less than ``merge_plateau`` x the higher)
+   whose saddle dips less than half ``merge_prominence`` are the plateau of a
+   flat-topped crown up to ``PLATEAU_REACH`` (1.3) x the crown radius: net
+   gain 1,476 -> 1,634 pairs, dense conifers 55 -> 50.
+5. **Clean-up and points.** Nothing of a tree lies above its top; voxels cut
+   off from their top go to the neighbour they are most strongly joined to;
+   crown pieces a sparse scan left unconnected join the nearest tree within
+   ``attach_m``.  Points take their voxel's label; a point farther from its
+   tree's top than ``crown_reach`` x that tree's allometric crown radius goes
+   to a tree whose top is within reach (Dalponte & Coomes's maximum crown
+   size, scaled by height; a stray carried across a neighbour's crown by the
+   graph; MixedConifer crown IoU with lidR 0.489 -> 0.587); last, a tree of
+   fewer than ``min_tree_points`` points (or, where the scan is sparse, the
+   first returns of ``MIN_TREE_AREA_M2`` of canopy around its top) is merged
+   into the tree within crown reach whose top is nearest, or is no tree
+   (never reported as one); points below
+   ``min_height_m`` take the label of the crown right above them (stems),
+   see :mod:`sylva.core.segment`.
+
+Modules: :mod:`.graph` (steps 1-2 and the tops' voxels), :mod:`.cut` (the start partition, the cuts
+and merges, steps 3-4), :mod:`.cleanup` (step 5) and :mod:`.method` (:class:`NormalizedCut`); the
+public names are re-exported here.
+"""
+from __future__ import annotations
+
+from .cleanup import ATTACH_ROUNDS, TOP_TOLERANCE_M, crown_radius_m
+from .cut import FIEDLER_ITERATIONS, PLATEAU_REACH, SETTLED_NCUT
+from .graph import DENSITY_HALF_WIDTH_M, VoxelGraph, canopy_density, local_canopy_density, voxel_graph
+from .method import APEX_WINDOW_POINTS, MIN_TREE_AREA_M2, NormalizedCut, TOP_CELL_M
+
+__all__ = ["NormalizedCut", "VoxelGraph", "voxel_graph"]

@@ -1,0 +1,291 @@
+"""The clean-up of the normalised cut's trees (Sylva, not in the papers; Hu et al. 2017 §4.1 step 5).
+
+Nothing of a tree above its top, voxels cut off from their top joined to the neighbour they are most
+strongly joined to, unconnected crown pieces attached within ``attach_m`` (:func:`clean_labels`); points
+beyond the allometric crown reach of their tree's top reassigned (:func:`within_crown_reach`,
+:func:`crown_radius_m`, Popescu & Wynne 2004), and trees of too few points merged into a neighbour
+(:func:`merge_small`).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ...jit import njit
+from ...kernels.buckets import bucket_by_cell
+from ...kernels.unionfind import uf_union
+from .graph import VoxelGraph
+
+
+#: Rounds of attaching unconnected crown pieces (each reaches attach_m farther).
+ATTACH_ROUNDS = 5
+
+#: A point higher than its tree's top by more than this is not that tree's.
+TOP_TOLERANCE_M = 0.02
+
+
+def _tops_of(xy, height, labels):
+    """(ids, top xy, top height) of every label > 0: its highest point (ties: lowest x, then y,
+    then the first point; never the point order alone, which depends on the tiling).  One pass
+    (:func:`_label_maxima`), not a sort of every labelled point."""
+    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64),
+                        np.ascontiguousarray(height, dtype=np.float64),
+                        np.ascontiguousarray(labels, dtype=np.int64), int(labels.max(initial=0)) + 1)
+    return labels[top], xy[top], height[top]
+
+
+@njit
+def _label_maxima(xy, h, labels, size):
+    """Ascending by label: the index of the highest point of every label > 0 (ties: lowest x,
+    then lowest y, then the lowest index), as a lexsort on (label, -h, x, y) picks it."""
+    best = np.full(size, -1, dtype=np.int64)
+    for i in range(len(labels)):
+        lab = labels[i]
+        if lab <= 0:
+            continue
+        b = best[lab]
+        if b < 0 or h[i] > h[b] or (h[i] == h[b] and (xy[i, 0] < xy[b, 0] or (
+                xy[i, 0] == xy[b, 0] and xy[i, 1] < xy[b, 1]))):
+            best[lab] = i
+    n = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            n += 1
+    out = np.empty(n, dtype=np.int64)
+    k = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            out[k] = best[lab]
+            k += 1
+    return out
+
+
+def _reassign(xy, height, labels, bad, tid, txy, th, reach, fallback):
+    """Labels of the points ``bad`` set to the tree (of tops tid/txy/th) within ``reach`` allometric
+    crown radii whose top is nearest in those units and not lower than the point; ``fallback``
+    (per bad point) where there is none."""
+    out = labels.copy()
+    if len(bad) == 0:
+        return out
+    if len(tid) == 0:
+        out[bad] = fallback
+        return out
+    k = min(8, len(tid))
+    dd, jj = cKDTree(txy).query(xy[bad], k=k)
+    dd, jj = dd.reshape(len(bad), k), jj.reshape(len(bad), k)
+    norm = dd / (reach * crown_radius_m(th[jj]))
+    ok = (norm <= 1.0) & (th[jj] >= height[bad][:, None] - TOP_TOLERANCE_M)
+    norm = np.where(ok, norm, np.inf)
+    best = np.argmin(norm, axis=1)
+    rows = np.arange(len(bad))
+    out[bad] = np.where(np.isfinite(norm[rows, best]), tid[jj[rows, best]], fallback)
+    return out
+
+
+def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
+                       reach: float) -> np.ndarray:
+    """Labels with every point farther (horizontally) from its tree's top than ``reach`` x the
+    crown radius that top's height implies (:func:`crown_radius_m`) moved to the tree
+    within reach whose top is nearest in those units and not lower than the point (a point
+    no other top reaches keeps its tree: open-grown crowns are wider than the allometry).
+
+    Dalponte & Coomes (2016) bound a crown by a maximum crown diameter; here the bound
+    follows the tree's height (Popescu & Wynne 2004 crown width).  It removes the strays
+    that graph paths carry across neighbouring crowns (Sylva, not in Hu et al.; measured on
+    MixedConifer.laz against lidR's crowns, ``benchmarks/segmentation.py``)."""
+    if not (labels > 0).any():
+        return labels
+    tid, txy, th = _tops_of(xy, height, labels)
+    pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
+    pos[tid] = np.arange(len(tid))
+    sel = np.flatnonzero(labels > 0)
+    p = pos[labels[sel]]
+    far = np.hypot(xy[sel, 0] - txy[p, 0], xy[sel, 1] - txy[p, 1]) > reach * crown_radius_m(th[p])
+    bad = sel[far]
+    return _reassign(xy, height, labels, bad, tid, txy, th, reach, labels[bad])
+
+
+def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_points: np.ndarray,
+                reach: float) -> np.ndarray:
+    """Trees of fewer than ``min_points[id]`` points merged into the tree within ``reach`` crown radii
+    whose top is nearest (as :func:`within_crown_reach`); with none in reach their points are
+    no tree (0): a handful of points apart from every crown is not a tree.  Sylva, not in Hu et al."""
+    if not (labels > 0).any():
+        return labels
+    size = np.bincount(labels, minlength=max(int(labels.max()) + 1, len(min_points)))
+    need = np.zeros(len(size))
+    need[:len(min_points)] = min_points
+    small = (size < need) & (size > 0)
+    small[0] = False
+    if not small.any():
+        return labels
+    tid, txy, th = _tops_of(xy, height, labels)
+    big = ~small[tid]
+    bad = np.flatnonzero(small[labels])
+    return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
+
+
+def crown_radius_m(height_m):
+    """Expected crown radius (m) of a tree ``height_m`` metres high: half the crown width of
+    Popescu & Wynne (2004), CW = 2.51503 + 0.00901 h² (pines and deciduous trees together;
+    :meth:`sylva.core.tops.VariableWindow.combined`)."""
+    h = np.asarray(height_m, dtype=np.float64)
+    return 0.5 * (2.51503 + 0.00901 * h * h)
+
+
+@njit
+def _pairs_within(xyz, query, r):
+    """Every (query[i], j, distance) with point j within ``r`` of point query[i] (d² <= r²,
+    d = sqrt((dx² + dy²) + dz²): the pairs and values of ``cKDTree.sparse_distance_matrix``),
+    found on a uniform grid of cells of edge >= r (counted, then filled).  Sylva, not in
+    the paper."""
+    n = xyz.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = xyz[0, a]
+        hi[a] = xyz[0, a]
+    for i in range(n):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    cell = max(r, 1e-9)
+    while True:
+        gx = int((hi[0] - lo[0]) / cell) + 1
+        gy = int((hi[1] - lo[1]) / cell) + 1
+        gz = int((hi[2] - lo[2]) / cell) + 1
+        if gx * gy * gz <= 4 * n + 4096:
+            break
+        cell *= 1.5
+    ncell = gx * gy * gz
+    cid = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        cx = min(int((xyz[i, 0] - lo[0]) / cell), gx - 1)
+        cy = min(int((xyz[i, 1] - lo[1]) / cell), gy - 1)
+        cz = min(int((xyz[i, 2] - lo[2]) / cell), gz - 1)
+        cid[i] = (cx * gy + cy) * gz + cz
+    start, member = bucket_by_cell(cid, ncell)
+    r2 = r * r
+    out_i = np.empty(0, dtype=np.int64)
+    out_j = np.empty(0, dtype=np.int64)
+    out_d = np.empty(0)
+    for rnd in range(2):            # count, then fill
+        k = 0
+        for q in range(len(query)):
+            p = query[q]
+            px, py, pz = xyz[p, 0], xyz[p, 1], xyz[p, 2]
+            c = cid[p]
+            cx, cy, cz = c // (gy * gz), (c // gz) % gy, c % gz
+            for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
+                for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
+                    for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
+                        g = (ix * gy + iy) * gz + iz
+                        for t in range(start[g], start[g + 1]):
+                            j = member[t]
+                            dx = px - xyz[j, 0]
+                            dy = py - xyz[j, 1]
+                            dz = pz - xyz[j, 2]
+                            d2 = (dx * dx + dy * dy) + dz * dz
+                            if d2 <= r2:
+                                if rnd == 1:
+                                    out_i[k] = p
+                                    out_j[k] = j
+                                    out_d[k] = np.sqrt(d2)
+                                k += 1
+        if rnd == 0:
+            out_i = np.empty(k, dtype=np.int64)
+            out_j = np.empty(k, dtype=np.int64)
+            out_d = np.empty(k)
+    return out_i, out_j, out_d
+
+
+@njit
+def _joined_to_top(a, b, vlabel, top_voxel, top_id):
+    """Per voxel: is it joined to its tree's top through voxels of that tree?
+
+    The components of the edges (a, b) whose ends share a label > 0 (union-find);
+    a component is good when it holds a top voxel whose label is that top's id
+    (of several tops in one component, the last one listed decides, as numpy's
+    fancy assignment does).  Sylva, not in the paper: the fragment test of
+    :func:`clean_labels`."""
+    m = len(vlabel)
+    root = np.arange(m)
+    for e in range(len(a)):
+        u, v = a[e], b[e]
+        if vlabel[u] > 0 and vlabel[u] == vlabel[v]:
+            uf_union(root, u, v)
+    for i in range(m):                  # flatten: root[i] is i's representative
+        r = i
+        while root[r] != r:
+            r = root[r]
+        root[i] = r
+    good = np.zeros(m, dtype=np.bool_)
+    for t in range(len(top_voxel)):
+        good[root[top_voxel[t]]] = vlabel[top_voxel[t]] == top_id[t]
+    out = np.empty(m, dtype=np.bool_)
+    for i in range(m):
+        out[i] = good[root[i]]
+    return out
+
+
+def clean_labels(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
+                 top_id: np.ndarray, top_height: np.ndarray, tolerance_m: float,
+                 attach_m: float) -> np.ndarray:
+    """Physical consistency of the labels, then fill the gaps.
+
+    * A tree holds nothing higher than its top (+ ``tolerance_m``).
+    * A tree's voxels not connected to its top through the tree itself are
+      fragments; they are released.
+    * Released voxels go to the neighbouring tree they are most strongly joined
+      to (largest w_ij) among the trees whose top is high enough.
+    * Voxels of top-less graph components (crown pieces a sparse scan left
+      unconnected) join the nearest labelled voxel within ``attach_m`` (3-D)
+      when that tree's top is high enough; farther ones (isolated noise) stay 0.
+    """
+    a, b = graph.edges[:, 0], graph.edges[:, 1]
+    w = graph.weights
+    z = graph.xyz[:, 2]
+    size = int(max(top_id.max(initial=0), vlabel.max(initial=0))) + 1
+    height_of = np.full(size, -np.inf)
+    # a given top may lie a little below its voxel's mean (another source or DTM)
+    height_of[top_id] = np.maximum(top_height, z[top_voxel])
+    vlabel = np.where(z <= height_of[vlabel] + tolerance_m, vlabel, 0)
+    vlabel = np.where(_joined_to_top(a, b, vlabel, top_voxel, top_id), vlabel, 0)
+    # flood the unlabelled voxels from labelled neighbours, strongest edge first
+    free_a = vlabel[a] == 0            # only edges into unlabelled voxels matter
+    free_b = vlabel[b] == 0
+    src = np.concatenate([a[free_a], b[free_b]])
+    dst = np.concatenate([b[free_a], a[free_b]])
+    ww = np.concatenate([w[free_a], w[free_b]])
+    while len(src):
+        cand = (vlabel[src] == 0) & (vlabel[dst] > 0)
+        cand &= z[src] <= height_of[vlabel[dst]] + tolerance_m
+        if not cand.any():
+            break
+        s, d, wc = src[cand], dst[cand], ww[cand]
+        o = np.lexsort((-wc, s))
+        s, d = s[o], d[o]
+        first = np.ones(len(s), dtype=bool)
+        first[1:] = s[1:] != s[:-1]
+        vlabel[s[first]] = vlabel[d[first]]
+        still = vlabel[src] == 0
+        src, dst, ww = src[still], dst[still], ww[still]
+    # crown pieces the graph left unconnected (sparse scans): nearest tree within attach_m
+    free = np.flatnonzero(vlabel == 0)
+    if not (len(free) and attach_m > 0 and (vlabel > 0).any()):
+        return vlabel
+    # every voxel within attach_m of a free one, found once (one tree of all voxels)
+    fi, vj, dist = _pairs_within(graph.xyz, free, float(attach_m))
+    order = np.lexsort((vj, dist, fi))          # per free voxel, nearest first
+    fi, vj = fi[order], vj[order]
+    for _ in range(ATTACH_ROUNDS):
+        lab = vlabel[vj]
+        ok = (vlabel[fi] == 0) & (lab > 0)
+        ok[ok] = z[fi[ok]] <= height_of[lab[ok]] + tolerance_m
+        if not ok.any():
+            break
+        f, l = fi[ok], lab[ok]
+        first = np.ones(len(f), dtype=bool)
+        first[1:] = f[1:] != f[:-1]
+        vlabel[f[first]] = l[first]
+    return vlabel

@@ -1,0 +1,340 @@
+"""The voxel graph of the normalised cut: Hu et al. 2017 §4.1.
+
+Voxels of the crown points with their mean, height and attributes, and the lattice edges between voxels
+within the search radius weighted by Eq. 2 (:func:`voxel_graph`, :class:`VoxelGraph`); the column maxima
+the tree tops are searched among, and the voxels the tops fall in.  The canopy density that widens the
+top windows where the scan is sparse is Sylva's, not in the paper.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from ...cloud import PointCloud
+from ...jit import njit
+
+
+# --------------------------------------------------------------------------- voxel graph
+
+@dataclass(eq=False)
+class VoxelGraph:
+    """Voxels of the crown points and their Eq. 2 affinities.
+
+    ``xyz`` (m, 3) mean local x, y and height of each voxel; ``ijk`` integer
+    voxel indices (relative to ``ij0``); ``point_voxel`` the voxel of each
+    crown point; ``W`` the symmetric sparse affinity matrix (CSR);
+    ``edges`` (e, 2) and ``weights`` (e,) the same as an edge list (i < j).
+    """
+
+    xyz: np.ndarray
+    ijk: np.ndarray
+    ij0: np.ndarray
+    point_voxel: np.ndarray
+    W: sp.csr_matrix
+    edges: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.xyz)
+
+
+def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
+                crown: np.ndarray, params: "NormalizedCut") -> VoxelGraph:
+    """Voxelise the crown points and build the sparse Eq. 2 affinity graph."""
+    idx = np.flatnonzero(crown)
+    pitch = params.voxel_m
+    x = local[idx, 0]
+    y = local[idx, 1]
+    z = height[idx]
+    ix = np.floor(x / pitch).astype(np.int64)
+    iy = np.floor(y / pitch).astype(np.int64)
+    iz = np.floor(z / pitch).astype(np.int64)
+    ij0 = np.array([ix.min(), iy.min()])
+    ix -= ij0[0]
+    iy -= ij0[1]
+    ny = int(iy.max()) + 1
+    nz = int(iz.max()) + 1
+    key = (ix * ny + iy) * nz + iz
+    ukey, inv = np.unique(key, return_inverse=True)
+    m = len(ukey)
+    count = np.bincount(inv, minlength=m).astype(np.float64)
+
+    def mean(values):
+        return np.bincount(inv, weights=values, minlength=m) / count
+
+    vxyz = np.column_stack([mean(x), mean(y), mean(z)])
+    ijk = np.column_stack([ukey // (ny * nz), (ukey // nz) % ny, ukey % nz])
+
+    features = []  # per-voxel I and C features, already divided by their scales
+    intensity = cloud.attr("intensity")
+    if intensity is not None:
+        # ln I: differences are ratios, free of the sensor's units and of any statistic of
+        # the tile, so a tree gets the same weights in any tiling (no per-tile scale)
+        vals = np.log(np.maximum(np.asarray(intensity, dtype=np.float64)[idx], 1.0))
+        features.append(mean(vals)[:, None] / params.sigma_intensity)
+    rgb = [cloud.attr(c) for c in ("red", "green", "blue")]
+    if all(c is not None for c in rgb):
+        cols = np.column_stack([np.asarray(c, dtype=np.float64)[idx] for c in rgb])
+        top = 65535.0 if cols.max(initial=0) > 255 else 255.0
+        vcol = np.column_stack([mean(cols[:, j]) for j in range(3)]) / top
+        features.append(vcol / params.sigma_colour)
+
+    # the cylinder of Eq. 2 (horizontal distance <= radius_m), cut at +-height_m
+    # vertically: an ellipsoid, i.e. a ball in coordinates with z scaled
+    feat = np.hstack(features) if features else np.zeros((m, 0))
+    groups = np.cumsum([0] + [f.shape[1] for f in features]).astype(np.int64)
+    col = ukey // nz
+    ucol, cstart = np.unique(col, return_index=True)
+    indptr, indices, data, a, b, w = _lattice_graph(
+        vxyz, np.ascontiguousarray(feat), groups, ijk[:, 2], ucol, np.r_[cstart, m].astype(np.int64),
+        int(ny), float(pitch), float(params.radius_m), float(params.height_m),
+        float(params.sigma_h_m), float(params.sigma_v_m))
+    if len(indices) < np.iinfo(np.int32).max:
+        indptr = indptr.astype(np.int32)
+    else:
+        indices = indices.astype(np.int64)
+    W = sp.csr_matrix((data, indices, indptr), shape=(m, m))
+    W.has_sorted_indices = True
+    return VoxelGraph(xyz=vxyz, ijk=ijk, ij0=ij0, point_voxel=inv, W=W,
+                      edges=np.column_stack([a, b]), weights=w)
+
+
+@njit
+def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, height, sigma_h, sigma_v):
+    """Eq. 2 affinities of every voxel pair within the ellipsoid (horizontal
+    distance² + (vertical distance x radius/height)² <= radius²) of their mean
+    positions, found on the voxel lattice: a voxel's mean lies in its voxel,
+    so its partners lie within ``reach`` columns and ``zreach`` layers.
+
+    Voxels come sorted by (column, layer).  The edges (a < b) are found in
+    that order, then the symmetric CSR is filled row by row (the partners
+    before a voxel, then those after it), so no sort is needed.  Returns
+    (indptr, indices, data) and the edge list a, b with its weights w.
+    ``feat``: per-voxel I and C features already divided by their scales,
+    columns ``groups[g]:groups[g + 1]`` for feature g (the L2 norm of each
+    feature's difference adds to the exponent, Eq. 2)."""
+    m = len(xyz)
+    reach = int(np.floor(radius / pitch)) + 1
+    zreach = int(np.floor(height / pitch)) + 1
+    squeeze = radius / height
+    r2 = radius * radius
+    ng = len(groups) - 1
+    cap = max(16, 8 * m)
+    ea = np.empty(cap, dtype=np.int64)
+    eb = np.empty(cap, dtype=np.int64)
+    ew = np.empty(cap, dtype=np.float64)
+    ne = 0
+    side = 2 * reach + 1
+    half = side * side // 2          # offsets o >= half: the own column and those after it
+    lo = np.empty(side * side, dtype=np.int64)    # voxel ranges of the
+    hi = np.empty(side * side, dtype=np.int64)    # neighbouring columns
+    seek = np.zeros(side * side, dtype=np.int64)  # per offset: the target only grows with c
+    ncol = len(ucol)
+    for c in range(ncol):
+        key = ucol[c]
+        cx = key // ny
+        cy = key - cx * ny
+        nc = 0
+        for o in range(half, side * side):
+            dx = o // side - reach
+            ty = cy + o % side - reach
+            if ty < 0 or ty >= ny:
+                continue
+            target = (cx + dx) * ny + ty
+            k = seek[o]
+            while k < ncol and ucol[k] < target:
+                k += 1
+            seek[o] = k
+            if k < ncol and ucol[k] == target:
+                lo[nc] = cstart[k]
+                hi[nc] = cstart[k + 1]
+                nc += 1
+        for i in range(cstart[c], cstart[c + 1]):
+            xi, yi, zi = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            for t in range(nc):
+                # layers ascend within a column and with i: the window only moves up
+                if t == 0:
+                    lo[0] = i + 1            # own column: the voxels after i
+                while lo[t] < hi[t] and iz[lo[t]] < iz[i] - zreach:
+                    lo[t] += 1
+                for j in range(lo[t], hi[t]):
+                    if iz[j] > iz[i] + zreach:
+                        break
+                    ex = xyz[j, 0] - xi
+                    ey = xyz[j, 1] - yi
+                    ez = xyz[j, 2] - zi
+                    h2 = ex * ex + ey * ey
+                    if h2 + (ez * squeeze) ** 2 > r2:
+                        continue
+                    expo = np.sqrt(h2) / sigma_h + abs(ez) / sigma_v
+                    for g in range(ng):
+                        f2 = 0.0
+                        for q in range(groups[g], groups[g + 1]):
+                            df = feat[j, q] - feat[i, q]
+                            f2 += df * df
+                        expo += np.sqrt(f2)
+                    if ne == cap:
+                        cap *= 2
+                        grown = np.empty(cap, dtype=np.int64)
+                        grown[:ne] = ea[:ne]
+                        ea = grown
+                        grown = np.empty(cap, dtype=np.int64)
+                        grown[:ne] = eb[:ne]
+                        eb = grown
+                        grown_w = np.empty(cap, dtype=np.float64)
+                        grown_w[:ne] = ew[:ne]
+                        ew = grown_w
+                    ea[ne] = i
+                    eb[ne] = j
+                    ew[ne] = np.exp(-expo)
+                    ne += 1
+    ea, eb, ew = ea[:ne], eb[:ne], ew[:ne]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    for e in range(ne):
+        indptr[ea[e] + 1] += 1
+        indptr[eb[e] + 1] += 1
+    for i in range(m):
+        indptr[i + 1] += indptr[i]
+    fill = indptr[:-1].copy()
+    indices = np.empty(2 * ne, dtype=np.int32)
+    data = np.empty(2 * ne, dtype=np.float64)
+    for e in range(ne):                  # partners before the row's voxel, ascending
+        r = eb[e]
+        indices[fill[r]] = ea[e]
+        data[fill[r]] = ew[e]
+        fill[r] += 1
+    for e in range(ne):                  # then those after it, ascending
+        r = ea[e]
+        indices[fill[r]] = eb[e]
+        data[fill[r]] = ew[e]
+        fill[r] += 1
+    return indptr, indices, data, ea, eb, ew
+
+
+def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
+    """Indices of the highest point of every ``cell_m`` column (ties: the lowest index).
+
+    A tree top is always such a point, so the local-maximum search only needs
+    these (a canopy-surface thinning; cells narrower than the window keep the
+    window maximum nearly exact).  Cells are whole multiples of ``cell_m`` in the
+    local frame (anchored on a global grid by the pipeline), never relative to
+    the points' extent, so any tiling gives the same columns."""
+    if len(xy) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ij = np.floor(xy / cell_m).astype(np.int64)
+    ij -= ij.min(axis=0)
+    ny = int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    size = int(ij[:, 0].max() + 1) * ny
+    if size <= 8 * len(key) + 1_000_000:      # a grid of cells is cheaper than two sorts
+        return _cell_maxima(key, np.ascontiguousarray(z, dtype=np.float64), size)
+    order = np.argsort(-z, kind="stable")
+    _, first = np.unique(key[order], return_index=True)
+    return np.sort(order[first])
+
+
+@njit
+def _cell_maxima(key, z, size):
+    """Ascending indices of the highest point of each occupied cell 0..size-1 (ties: lowest index)."""
+    best = np.full(size, -1, dtype=np.int64)
+    for i in range(len(key)):
+        b = best[key[i]]
+        if b < 0 or z[i] > z[b]:
+            best[key[i]] = i
+    out = np.empty(len(key), dtype=np.int64)
+    k = 0
+    for c in range(size):
+        if best[c] >= 0:
+            out[k] = best[c]
+            k += 1
+    return np.sort(out[:k])
+
+
+#: Half width (m) of the square neighbourhood of :func:`local_canopy_density`.
+DENSITY_HALF_WIDTH_M = 5
+
+
+def local_canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> np.ndarray:
+    """Per point: canopy first returns per m² of canopy within the 1 m columns of the
+    (2 x DENSITY_HALF_WIDTH_M + 1) m square around its own column (first returns of
+    the crown points, all crown points without ``return_number``, over the occupied
+    columns); 1 where there is no canopy.  Columns are whole metres of the local
+    frame (anchored on a global grid by the pipeline), so the value depends on the
+    neighbourhood only.  Sylva, not in Hu et al."""
+    from scipy import ndimage
+
+    n = len(local)
+    out = np.ones(n)
+    rn = cloud.attr("return_number")
+    sel = crown if rn is None else crown & (np.asarray(rn) <= 1)
+    if not sel.any():
+        sel = crown
+    if not sel.any():
+        return out
+    ij_all = np.floor(local[:, :2]).astype(np.int64)
+    lo = ij_all[sel].min(axis=0) - DENSITY_HALF_WIDTH_M
+    hi = ij_all[sel].max(axis=0) + DENSITY_HALF_WIDTH_M
+    shape = tuple((hi - lo + 1).tolist())
+    if shape[0] * shape[1] > 8 * n + 4_000_000:      # a sparse extent: the whole cloud's mean
+        out[:] = canopy_density(cloud, local, crown)
+        return out
+    ij = ij_all[sel] - lo
+    counts = np.zeros(shape)
+    np.add.at(counts, (ij[:, 0], ij[:, 1]), 1.0)
+    occupied = (counts > 0).astype(np.float64)
+    size = 2 * DENSITY_HALF_WIDTH_M + 1
+    # box sums as exact integers (uniform_filter of 0/1 and counts, times the box area)
+    csum = np.rint(ndimage.uniform_filter(counts, size=size, mode="constant") * size * size)
+    osum = np.rint(ndimage.uniform_filter(occupied, size=size, mode="constant") * size * size)
+    dens = np.where(osum > 0, csum / np.maximum(osum, 1.0), 1.0)
+    q = ij_all - lo
+    inside = (q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] < shape[0]) & (q[:, 1] < shape[1])
+    out[inside] = dens[q[inside, 0], q[inside, 1]]
+    return np.maximum(out, 1e-3)
+
+
+def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> float:
+    """Canopy first returns per m² of canopy: the crown points' first returns (all
+    crown points when the cloud has no ``return_number``) over the number of
+    occupied 1 m columns."""
+    rn = cloud.attr("return_number")
+    sel = crown if rn is None else crown & (np.asarray(rn) <= 1)
+    if not sel.any():
+        sel = crown
+    xy = local[sel, :2]
+    if len(xy) == 0:
+        return 1.0
+    ij = np.floor(xy - xy.min(axis=0)).astype(np.int64)
+    ny = int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    size = int(ij[:, 0].max() + 1) * ny
+    if size <= 8 * len(key) + 1_000_000:      # an occupancy grid is cheaper than a sort
+        occupied = np.zeros(size, dtype=bool)
+        occupied[key] = True
+        cells = int(occupied.sum())
+    else:
+        cells = len(np.unique(key))
+    return len(xy) / cells
+
+
+def top_voxels(graph: VoxelGraph, tops, params: "NormalizedCut"):
+    """The voxel of each tree top (nearest voxel mean, 3-D); tops without one are dropped.
+
+    When several tops fall on one voxel, the first (highest, by TreeTops order) keeps it.
+    """
+    tree = cKDTree(graph.xyz)
+    q = np.column_stack([tops.xy, tops.height])
+    limit = max(params.radius_m, 2.0 * params.voxel_m)
+    dist, vox = tree.query(q, distance_upper_bound=limit)
+    ok = np.isfinite(dist)
+    order = np.lexsort((np.arange(len(q)), -tops.height))
+    order = order[ok[order]]
+    vox_sorted = vox[order]
+    _, first = np.unique(vox_sorted, return_index=True)
+    keep = order[np.sort(first)]
+    return (vox[keep].astype(np.int64), tops.tree_id[keep].astype(np.int64),
+            tops.height[keep])

@@ -1,0 +1,222 @@
+"""The normalised-cut tree segmentation method: Hu et al. 2017 §4.1.
+
+:class:`NormalizedCut` finds the tree tops, builds the voxel graph (:mod:`.graph`), cuts it between
+neighbouring tops (:mod:`.cut`), cleans the trees up (:mod:`.cleanup`) and labels the points.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ParameterError
+from ...cloud import PointCloud
+from ...progress import CancelCheck, Progress, check, report, scaled
+from ...tops import MIN_TREE_HEIGHT_M
+from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
+from .cleanup import TOP_TOLERANCE_M, merge_small, within_crown_reach
+from .cut import cut_graph
+from .graph import column_maxima, local_canopy_density, top_voxels, voxel_graph
+
+
+#: Tops are searched among the highest points of columns this wide (d_s / 2).
+TOP_CELL_M = 0.35
+
+
+#: A tree holds at least min_tree_points points, or the canopy first returns of this many m²
+#: at the scan's density around its top when fewer (a 1.25 m crown radius: 10 points at 2 per m²).
+MIN_TREE_AREA_M2 = 5.0
+
+
+#: At low density the steep-apex window is widened to hold this many canopy
+#: first returns (0.8 m at about 19 points/m², 1.6 m at 5 points/m²).
+APEX_WINDOW_POINTS = 10.0
+
+
+@dataclass(frozen=True)
+class NormalizedCut:
+    """Hu et al. (2017) §4.1 normalised cut on a voxel graph, guided by tree tops.
+
+    ``voxel_m``: voxel pitch d_s (paper default 0.7 m, §6.1).
+    ``radius_m``: r^xz of Eq. 2, voxels farther apart horizontally are not joined.
+    ``height_m``: vertical reach of the neighbourhood (the cylinder's half height).
+    ``sigma_h_m``, ``sigma_v_m``: scales of the horizontal / vertical distance in Eq. 2.
+    ``sigma_intensity``: scale of the intensity difference, in natural-log units (ln I).
+    ``sigma_colour``: scale of the RGB distance (colours scaled to [0, 1]).
+    ``min_height_m``: crown points are at least this high (and tops too).
+    ``top_window_m``: fixed window of the local-maximum tree-top search when
+    no tops are given (small on purpose: the cuts merge surplus tops); None
+    means the default.
+    ``top_window_points``: at low point density the window is widened so that
+    it holds at least this many canopy first returns (0 keeps ``top_window_m``).
+    ``apex_window_m``, ``apex_slope``, ``apex_sectors``: the steep-apex rule
+    (:class:`sylva.core.tops.SteepApex`): a maximum of this narrow window is a
+    top too when the canopy drops at least ``apex_slope`` m per m from it in
+    ``apex_sectors`` of 8 directions (conifer tips overtopped on one side by
+    a neighbour); ``apex_window_m`` 0 turns the rule off.
+    ``merge_ncut``, ``merge_dip``: two regions whose best two-way cut costs more
+    than ``merge_ncut`` (Eq. 1) *and* whose crowns dip between their tops by less
+    than ``merge_dip`` x the lower top's height are one tree.
+    ``always_merge_ncut``: regions whose best cut costs more than this are one
+    tree whatever the dip.
+    ``merge_reach``, ``merge_prominence``: the crown-reach merge of step 4 (a
+    lower top within ``merge_reach`` x the higher tree's allometric crown
+    radius, rising less than ``merge_prominence`` x its height above the
+    saddle, is a bump of that crown); ``merge_plateau``: two such tops whose
+    heights differ by less than this fraction are one flat crown up to
+    ``PLATEAU_REACH`` crown radii apart.
+    ``min_tree_points``: smaller trees are merged into their neighbours (where
+    the scan is sparse, the first returns of ``MIN_TREE_AREA_M2`` of canopy
+    around the top, if fewer).
+    ``crown_reach``: points farther from their top than this many allometric
+    crown radii move to a tree within reach (0: off).
+    ``climb``: cost per metre climbed of the geodesic start partition.
+    ``attach_m``: reach of unconnected crown pieces to the nearest tree.
+    """
+
+    voxel_m: float = 0.7
+    radius_m: float = 1.0
+    height_m: float = 2.0
+    sigma_h_m: float = 1.0
+    sigma_v_m: float = 1.0
+    sigma_intensity: float = 1.0
+    sigma_colour: float = 0.25
+    min_height_m: float = MIN_TREE_HEIGHT_M
+    top_window_m: float = 2.0
+    top_window_points: float = 25.0
+    apex_window_m: float = 0.8
+    apex_slope: float = 3.0
+    apex_sectors: int = 5
+    merge_ncut: float = 0.05
+    merge_dip: float = 0.04
+    always_merge_ncut: float = 0.15
+    merge_reach: float = 0.7
+    merge_prominence: float = 0.15
+    merge_plateau: float = 0.05
+    min_tree_points: int = 20
+    crown_reach: float = 1.25
+    climb: float = 100.0
+    attach_m: float = 2.0
+
+    def __post_init__(self):
+        if self.top_window_m is None:   # "not given" (an optional GUI/CLI parameter)
+            object.__setattr__(self, "top_window_m", 2.0)
+        for name in ("voxel_m", "radius_m", "height_m", "sigma_h_m", "sigma_v_m", "sigma_intensity",
+                     "sigma_colour", "merge_ncut", "always_merge_ncut"):
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ParameterError(f"NormalizedCut.{name} must be a positive finite number, "
+                                     f"not {getattr(self, name)}")
+        if not 0 <= self.min_height_m < float("inf"):
+            raise ParameterError(f"NormalizedCut: min_height_m must be >= 0 and finite, not {self.min_height_m}")
+        if not 0 <= self.merge_dip < float("inf"):
+            raise ParameterError("NormalizedCut: merge_dip must be >= 0")
+        if not all(0 <= v < float("inf") for v in (self.merge_reach, self.merge_prominence, self.crown_reach,
+                                                   self.min_tree_points)):
+            raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach and min_tree_points "
+                                 "must be >= 0 and finite")
+        if not (0 <= self.top_window_points and 0 <= self.apex_window_m < float("inf")
+                and 0 < self.top_window_m < float("inf")):
+            raise ParameterError("NormalizedCut: top_window_points and apex_window_m must be >= 0, "
+                                 "top_window_m positive and finite")
+        if self.apex_window_m > 0 and not (0 < self.apex_slope < float("inf") and 1 <= self.apex_sectors <= 8):
+            raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
+
+    def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
+                crown: np.ndarray, density: np.ndarray = None):
+        """(top window, apex window) diameters in metres, one per point of the cloud.
+
+        Each is widened where the scan is sparse to hold ``top_window_points`` /
+        ``APEX_WINDOW_POINTS`` canopy first returns, by the canopy density
+        around the point (:func:`local_canopy_density`: a neighbourhood of
+        fixed size, never a statistic of the tile, so any tiling gives the same
+        windows).  An apex window as wide as the top window adds nothing."""
+        if density is None:
+            density = local_canopy_density(cloud, local, crown)
+        wide = np.full(len(local), float(self.top_window_m))
+        if self.top_window_points > 0:
+            wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
+        apex = np.zeros(len(local))
+        if self.apex_window_m > 0:
+            apex = np.maximum(float(self.apex_window_m),
+                              2.0 * np.sqrt(APEX_WINDOW_POINTS / (np.pi * density)))
+            apex = np.minimum(apex, wide)
+        return wide, apex
+
+    def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None):
+        """Tree tops among the highest point of every TOP_CELL_M column (see step 3)."""
+        from ...tops import FixedWindow, SteepApex, find_tree_tops
+
+        wide, apex = self.windows(cloud, local, height, crown, density)
+        sel = np.flatnonzero(crown)
+        search = sel[column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
+        rule = None
+        if self.apex_window_m > 0 and self.apex_window_m < self.top_window_m:
+            rule = SteepApex(float(self.apex_window_m), self.apex_slope, int(self.apex_sectors))
+        return find_tree_tops(cloud.subset(search), window=FixedWindow(float(self.top_window_m)),
+                              min_height_m=self.min_height_m, progress=progress,
+                              cancelled=cancelled, apex=rule, diameters=wide[search],
+                              apex_diameters=apex[search] if rule is not None else None)
+
+    def segment(self, cloud: PointCloud, tops=None, progress: Progress = None,
+                cancelled: CancelCheck = None) -> np.ndarray:
+        """Per-point tree IDs (int32, 0 = none) of a height-normalised cloud."""
+        n = len(cloud)
+        labels = np.zeros(n, dtype=np.int32)
+        height = np.asarray(cloud.attr("height"), dtype=np.float64)
+        ground = ground_mask(cloud, height)
+        crown = (height >= self.min_height_m) & ~ground
+        if not crown.any():
+            return labels
+        check(cancelled)
+        report(progress, 0.0, "building the voxel graph")
+        local = cloud.local_xyz()
+        graph = voxel_graph(cloud, local, height, crown, self)
+        check(cancelled)
+        report(progress, 0.1, "finding tree tops")
+        # canopy first returns per m2 around every point (top windows, minimum tree size)
+        rho = local_canopy_density(cloud, local, crown)
+        if tops is None and graph.n:
+            tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
+                                   cancelled, rho)
+        local_tops = resolve_tops(cloud, tops, self.min_height_m, self.top_window_m,
+                                  scaled(progress, 0.1, 0.2), cancelled)
+        check(cancelled)
+        if len(local_tops) == 0 or graph.n == 0:
+            return labels
+        top_voxel, top_id, top_height = top_voxels(graph, local_tops, self)
+        # the minimum size of a tree, in points, at the scan's density around its top
+        voxel_rho = np.zeros(graph.n)
+        np.maximum.at(voxel_rho, graph.point_voxel, rho[crown])
+        min_points = np.minimum(float(self.min_tree_points), MIN_TREE_AREA_M2 * voxel_rho[top_voxel])
+        report(progress, 0.2, "normalised cuts")
+        vlabel = cut_graph(graph, top_voxel, top_id, top_height, self,
+                           scaled(progress, 0.2, 0.95), cancelled)
+        # points: crown points take their voxel's label, low points the crown above them
+        labels[crown] = vlabel[graph.point_voxel]
+        # nothing of a tree is higher than its top (points of a taller neighbour)
+        top_h = np.zeros(int(top_id.max()) + 1)
+        top_h[top_id] = top_height
+        above = labels > 0
+        above[above] = height[above] > top_h[labels[above]] + TOP_TOLERANCE_M
+        labels[above] = 0
+        if self.crown_reach > 0:
+            labels = within_crown_reach(local[:, :2], height, labels, self.crown_reach)
+        # stems and low branches (below min_height_m, or crown points no top
+        # reached): the label of the crown right above them in their column
+        low = np.flatnonzero((labels == 0) & ~ground)
+        if len(low):
+            has = vlabel > 0
+            ixv, iyv, izv = graph.ijk[has].T
+            lx = np.floor(local[low, 0] / self.voxel_m).astype(np.int64) - graph.ij0[0]
+            ly = np.floor(local[low, 1] / self.voxel_m).astype(np.int64) - graph.ij0[1]
+            inside = (lx >= 0) & (ly >= 0)
+            q = np.full(len(low), -1, dtype=np.int64)
+            q[inside] = column_keys(lx[inside], ly[inside])
+            labels[low] = label_columns_below(
+                column_keys(ixv, iyv), izv * self.voxel_m, vlabel[has].astype(np.int32),
+                q, height[low])
+        if self.min_tree_points > 1:
+            need = np.zeros(int(top_id.max()) + 1)
+            need[top_id] = min_points
+            labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0))
+        return labels
