@@ -174,6 +174,9 @@ def test_the_dialog_runs_with_its_defaults(desktop_report, name):
     assert entry["accepted"], entry["check_message"]
     assert "-2147483648" not in entry["widgets"].values()
     assert entry["help_url"].startswith("file://") and entry["help_url"].endswith(f"{name}.html")
+    # pressing Help opens that page, which ships with the plugin
+    assert entry["help_buttons"] == 1 and entry["help_opened"] == [entry["help_url"]], entry["help_opened"]
+    assert (ROOT / "resources" / "help" / f"{name}.html").is_file()
     assert Path(entry["dialog_png"]).stat().st_size > 10_000
     assert entry["successful"], entry.get("log_tail")
     for prefix in EXPECTED_LAYERS.get(f"sylva:{name}", []):

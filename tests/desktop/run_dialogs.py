@@ -10,8 +10,9 @@ import time
 import traceback
 
 from qgis.core import QgsApplication, QgsProject
-from qgis.PyQt.QtCore import QTimer
-from qgis.PyQt.QtWidgets import QApplication
+from qgis.PyQt.QtCore import QObject, QTimer, QUrl, pyqtSlot
+from qgis.PyQt.QtGui import QDesktopServices
+from qgis.PyQt.QtWidgets import QApplication, QDialogButtonBox
 from qgis.utils import iface
 
 REPORT = os.environ["SYLVA_DESKTOP_REPORT"]
@@ -20,6 +21,22 @@ INPUTS = json.loads(os.environ["SYLVA_DESKTOP_INPUTS"])
 TIMEOUT_S = float(os.environ.get("SYLVA_DESKTOP_TIMEOUT", "120"))
 report = {"algorithms": {}, "error": None, "qgis": None, "interpreter": None, "project_layers": []}
 queue = []
+
+
+class OpenedUrls(QObject):
+    """Catches the file:// URLs the desktop would hand to a browser (the dialogs' Help button)."""
+
+    def __init__(self):
+        super().__init__()
+        self.urls = []
+
+    @pyqtSlot(QUrl)
+    def open(self, url):
+        self.urls.append(url.toString())
+
+
+OPENED = OpenedUrls()
+QDesktopServices.setUrlHandler("file", OPENED, "open")
 
 
 def save(name, widget):
@@ -123,6 +140,15 @@ def run_dialog(aid, entry):
     entry["accepted"] = bool(ok)
     entry["check_message"] = message
     entry["dialog_png"] = save(f"{aid.split(':')[1]}_dialog.png", dlg)
+    # the Help button, as a user presses it: what it opens
+    seen = len(OPENED.urls)
+    helps = [b.button(QDialogButtonBox.Help) for b in dlg.findChildren(QDialogButtonBox)]
+    helps = [b for b in helps if b is not None and b.isVisible()]
+    if helps:
+        helps[0].click()
+        QApplication.processEvents()
+    entry["help_buttons"] = len(helps)
+    entry["help_opened"] = OPENED.urls[seen:]
     before = set(QgsProject.instance().mapLayers())
     if not ok:
         dlg.close()
