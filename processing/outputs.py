@@ -35,6 +35,7 @@ FOREST_LAYERS = (
     ("stem_points", "stem_points.qml", False),
     ("skeletons", "skeletons.qml", False),
     ("models_3d", "models_3d.qml", True),
+    ("crowns_3d", "crowns_3d.qml", True),
 )
 #: The run's rasters: (result name, file, layer name, style, visible).
 RUN_RASTERS = (

@@ -12,7 +12,7 @@ from ..atomic import atomic_path, move_into_place, temporary_beside
 from .gpkg import GpkgMerge, default_styles
 
 #: The layers of a run's forest.gpkg, in the order QGIS lists them.
-LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d")
+LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d", "crowns_3d")
 
 
 def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
