@@ -54,6 +54,9 @@ def test_pipeline_algorithm_writes_the_whole_forest(sample_laz, tmp_path):
     assert len(read_gpkg(out / "forest.gpkg", "skeletons")) == n
     assert len(read_gpkg(out / "forest.gpkg", "crowns")) == n
     assert len(read_gpkg(out / "forest.gpkg", "models_3d")) == n
+    crowns = read_gpkg(out / "forest.gpkg", "crowns_3d")      # one crown envelope a tree, across the tiles
+    assert sorted(crowns.columns["tree_id"]) == sorted(trees.columns["tree_id"])
+    assert all(g is not None for g in crowns.geometries) and crowns.columns["n_triangles"].max() <= 82
     # per-tile GLBs hold every owned tree once; the run's tileset points at every tile's tileset
     names = []
     for glb in sorted((out / "models").glob("*.glb")):

@@ -4,7 +4,7 @@
     <vector-layer-3d-tiling zoom-levels-count="3" show-bounding-boxes="0"/>
     <symbol type="polygon" material_type="phong">
       <data rendered-facade="3" invert-normals="0" alt-binding="centroid" alt-clamping="relative" extrusion-height="0" culling-mode="no-culling" height="0" add-back-faces="0"/>
-      <material diffuse="86,150,34,255" specular="10,10,10,255" shininess="2" ambient="40,72,16,255">
+      <material diffuse="70,120,24,255" specular="10,10,10,255" shininess="2" ambient="64,110,24,255">
         <data-defined-properties>
           <Option type="Map">
             <Option type="QString" value="" name="name"/>
