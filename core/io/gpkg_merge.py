@@ -22,8 +22,8 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     R-tree per geometry column and carries Sylva's QGIS styles in ``layer_styles``.
 
     ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
-    The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
-    pipeline and merged here like the others.
+    The 3D layers (``models_3d``, core/export/gpkg3d.py; ``crowns_3d``, core/export/crowns3d.py)
+    are written per tile by the pipeline and merged here like the others.
     """
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
