@@ -87,8 +87,8 @@ def test_new_3d_view_shows_the_trees(session):
 
 def test_new_3d_view_after_exportmodels_shows_the_trees(session):
     report, shots = session
-    layers = {layer["name"]: layer for layer in report["export_layers"]}
-    assert set(layers) == {"models_3d", "crowns_3d"}
+    layers = {layer["source"].rsplit("layername=", 1)[-1]: layer for layer in report["export_layers"]}
+    assert set(layers) == {"models_3d", "crowns_3d"}                 # MODELS_3D and CROWNS_3D, one GeoPackage
     for layer in layers.values():
         assert layer["renderer3d"] == "vector" and layer["features"] > 0 and layer["visible"]
     trees = render_3d.tree_pixels(render_3d.pixels(shots / "view3d_exportmodels.png"))
