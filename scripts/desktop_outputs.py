@@ -177,6 +177,21 @@ def map_2d():
     iface.mapCanvas().saveAsImage(os.path.join(SHOTS, "crowns_2d.png"))
     QApplication.primaryScreen().grabWindow(0).save(os.path.join(SHOTS, "desktop_after_pipeline.png"))
     log("2D map saved")
+    when_no_tasks(open_3d_view)
+
+
+def when_no_tasks(then, timeout_s=600.0):
+    """Call ``then`` once no QgsTask runs.  A Python task (the plugin's first-load warm-up, plugin/main.py)
+    running while a 3D view is created deadlocks QGIS 3.22: the main thread, holding Python's GIL, waits in
+    Qt3D's ``QAspectEngine::setRootEntity`` for a function to run on every pooled thread, and the task's
+    thread waits for the GIL (seen with gdb)."""
+    start = time.time()
+    wait_until(lambda: QgsApplication.taskManager().countActiveTasks() == 0, timeout_s,
+               lambda: (report.setdefault("waits_tasks_s", []).append(round(time.time() - start, 1)), then()),
+               then)
+
+
+def open_3d_view():
     dock = new_3d_view()
     report["view3d_dock"] = dock.windowTitle()
     when_drawn(dock, lambda: shot_3d(dock))
@@ -239,6 +254,10 @@ def after_export(dlg):
     dlg.close()
     report["export_layers"] = layers_info()
     iface.mapCanvas().zoomToFullExtent()
+    when_no_tasks(lambda: export_3d_view())
+
+
+def export_3d_view():
     dock = new_3d_view()
     when_drawn(dock, lambda: shot_export(dock))
 

@@ -107,7 +107,9 @@ def desktop_session(sample: Path, workdir: Path, timeout_s: float = 1200.0, stal
     is killed and run once more from the start, and the report says so (``attempts``): Qt3D 5.15 in QGIS 3.22
     now and then deadlocks while it creates a 3D view (the main thread waits in
     ``QAspectEngine::setRootEntity`` for the render thread, which waits for it), which no timer inside the
-    frozen application can end."""
+    frozen application can end.  One cause is known and avoided: a Python QgsTask running meanwhile (the
+    plugin's warm-up, on a first load after ``core/`` changed) holds a pooled thread waiting for the GIL,
+    which the main thread holds there; ``desktop_outputs.py`` opens its 3D views once no task runs."""
     if shutil.which("xvfb-run") is None or shutil.which("qgis") is None:
         raise RuntimeError("needs xvfb-run and qgis (Debian: apt-get install -y xvfb qgis)")
     workdir.mkdir(parents=True, exist_ok=True)
