@@ -59,8 +59,29 @@ def run(args: dict, feedback: Feedback) -> Result:
         feedback.info(f"{name}: {target}")
     feedback.progress(0.92, "3D layer")
     result.vectors["MODELS_3D"] = models_table(models, frame, leaves=bool(args.get("LEAVES_3D")))
+    feedback.progress(0.96, "3D crowns")
+    result.vectors["CROWNS_3D"] = model_crowns(models, frame)
     feedback.progress(1.0, "done")
     return result
+
+
+def model_crowns(models, frame):
+    """The crowns_3d layer of ``models``: each one's crown envelope (core/export/crowns3d.py) from its leaves,
+    else from its wood above the crown base, standing on its base like models_3d."""
+    import numpy as np
+
+    from ..core.export.crowns3d import crown_hull, crowns_table, model_crown_points
+
+    units = frame.resolved_units()
+    scale = np.array([units.horizontal_m, units.horizontal_m, units.vertical_m])
+    cache, hulls = {}, []
+    for m in models:
+        points, top = model_crown_points(m, cache)
+        hulls.append(crown_hull(points, keep=top))
+    height = np.array([np.nan if m.attributes.get("height") is None else float(m.attributes["height"])
+                       for m in models])
+    return crowns_table([m.tree_id for m in models], hulls, np.array([m.base for m in models]), scale,
+                        np.array([m.base[2] for m in models]), frame.pyproj_crs(), height=height)
 
 
 EXPORT_MODELS = Algorithm(
@@ -74,7 +95,8 @@ EXPORT_MODELS = Algorithm(
         "tileset (Cesium, CesiumJS, QGIS 3.34+), CityGML 2.0 or 3.0 SolitaryVegetationObjects, and "
         "Wavefront OBJ (Blender, MeshLab). MODELS_3D is a layer QGIS draws in its own 3D map view: "
         "one MultiPolygonZ of triangles per tree (the coarsest wood mesh, in the source CRS, with the "
-        "trees' attributes), loaded with a 3D style (polygon symbol, absolute altitude, no extrusion). "
+        "trees' attributes), loaded with a 3D style (polygon symbol, standing on the terrain, no extrusion); "
+        "CROWNS_3D adds a closed low-poly crown envelope per tree, drawn green. "
         "Every file keeps the source CRS: a .prj and an .origin.json are written next to it."
     ),
     params=(
@@ -101,6 +123,10 @@ EXPORT_MODELS = Algorithm(
         Param("MODELS_3D", VECTOR_OUT, "3D models layer", geometry=POLYGON, optional=True, style="models_3d.qml",
               help="MultiPolygonZ of triangles per tree in the source CRS with the trees' attributes and "
                    "n_triangles; shown by QGIS's 3D map view."),
+        Param("CROWNS_3D", VECTOR_OUT, "3D crowns layer", geometry=POLYGON, optional=True, style="crowns_3d.qml",
+              help="One closed low-poly crown envelope per tree (at most 82 triangles: the convex hull of its "
+                   "leaves, else of its wood above the crown base) as a MultiPolygonZ in the source CRS with "
+                   "tree_id, base_z, height and n_triangles; drawn green over the wood in QGIS's 3D map view."),
     ),
     run=run,
     results=(Param("TREE_COUNT", NUMBER_RESULT, "Number of trees", help="Trees exported."),),

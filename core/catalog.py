@@ -14,7 +14,7 @@ the run goes on.  A rerun skips every tile whose manifest matches its inputs
 
 Output folder::
 
-    forest.gpkg            trees, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d
+    forest.gpkg            trees, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d, crowns_3d
     tiles/<tile>.laz       every input tile with an int32 treeID (0 = no tree)
     models/<tile>.glb      the tile's owned trees, a node per tree
     models/tileset.json    one 3D Tiles 1.1 tileset for the run (external tilesets per tile)

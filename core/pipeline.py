@@ -463,6 +463,17 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         skeletons = skeleton_table(trees, work, crs)
         models_3d = models_table(models, frame, cache=encoded)   # the QGIS-native 3D layer
         del models, trees, encoded
+    crowns_3d = None
+    if len(m):   # the 3D crown envelopes (core/export/crowns3d.py), standing on the models' bases when there are models
+        from .export.crowns3d import crowns_table, point_crowns
+
+        base_z = np.asarray(columns.get("base_z", m.ground_z), dtype=np.float64)
+        origins = np.column_stack([m.x, m.y, base_z])
+        scale = np.array([work.units.horizontal_m, work.units.horizontal_m, work.units.vertical_m])
+        crown_idx = np.flatnonzero((own_labels > 0) & ~m.is_stem)
+        hulls = point_crowns(work.xyz[crown_idx], own_labels[crown_idx], m.tree_id, origins, scale,
+                             np.column_stack([m.x, m.y, m.top_z]))
+        crowns_3d = crowns_table(m.tree_id, hulls, origins, scale, base_z, crs, height=m.height)
     tables.append(VectorTable("trees", "none", None, columns, crs))
     tables.append(point_layer("tree_tops", np.column_stack([m.x, m.y, m.top_z]),
                               {"tree_id": m.tree_id, "height": m.height}, crs))
@@ -478,6 +489,8 @@ def process_tile(job: TileJob, progress=None, cancelled=None) -> dict:
         tables.append(skeletons)
     if models_3d is not None:
         tables.append(models_3d)
+    if crowns_3d is not None:
+        tables.append(crowns_3d)
     write_gpkg(paths["gpkg"], tables)
     # IDs written (for the run-wide collision check): owned trees and every ID in the LAS
     seen = np.isin(gids, present) | owned

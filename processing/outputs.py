@@ -9,7 +9,8 @@ post-processor (:class:`StyledOutput`) that applies its ``.qml`` from
 the bottom of the layer tree (Processing loads them in the order of their
 sources' names).
 
-The 3D view: ``models_3d.qml`` stands every tree on the terrain (altitude
+The 3D view: ``models_3d.qml`` (the wood) and ``crowns_3d.qml`` (a green crown envelope
+per tree) stand every tree on the terrain (altitude
 clamping *relative*, bound to each triangle's centroid, height ``-"base_z"``, else minus the lowest vertex),
 so on QGIS 3.22's flat terrain at 0 m a new 3D view shows the forest on the
 2D map without any setting; with the run's ``dtm.vrt`` as a DEM terrain
@@ -35,6 +36,7 @@ FOREST_LAYERS = (
     ("stem_points", "stem_points.qml", False),
     ("skeletons", "skeletons.qml", False),
     ("models_3d", "models_3d.qml", True),
+    ("crowns_3d", "crowns_3d.qml", True),
 )
 #: The run's rasters: (result name, file, layer name, style, visible).
 RUN_RASTERS = (

@@ -10,12 +10,13 @@ Starts QGIS desktop under Xvfb with ``scripts/desktop_outputs.py``, which runs
 Processing load the run's layers with Sylva's styles, saves the 2D map
 (``crowns_2d.png``: the crowns, graduated by height, over the CHM), opens
 *View ▸ New 3D Map View* and grabs it with the camera that view starts with
-(``trees_3d.png``), grabs it again with ``models_3d`` hidden, then runs
-``sylva:exportmodels`` from its dialog and grabs a new 3D view of its layer.
+(``trees_3d.png``), grabs it again with ``crowns_3d`` hidden, then with ``models_3d`` hidden too, then runs
+``sylva:exportmodels`` from its dialog and grabs a new 3D view of its layers.
 
 Prints the share of the 3D view's pixels that are trees (the bark colour of
-``resources/styles/models_3d.qml``: red > green > blue, see
-:func:`tree_pixels`), with and without the models layer.
+``resources/styles/models_3d.qml``, red > green > blue, or the crown colour of
+``crowns_3d.qml``, green > red > blue: see :func:`tree_pixels`), with the
+crowns hidden, and with both 3D layers hidden.
 """
 from __future__ import annotations
 
@@ -55,11 +56,28 @@ def pixels(png: Path) -> np.ndarray:
     return rows.reshape(h, w, 3).copy()
 
 
-def tree_pixels(rgb: np.ndarray) -> np.ndarray:
+def bark_pixels(rgb: np.ndarray) -> np.ndarray:
     """Pixels of the models' bark (models_3d.qml: diffuse 139,90,43, Phong-shaded): red > green > blue by
-    clear margins.  The maps under them (greys, greens, white) have none of those."""
+    clear margins."""
     r, g, b = (rgb[..., i].astype(np.int32) for i in range(3))
     return (r > g + 8) & (g > b + 4) & (r - b > 30) & (r < 230)
+
+
+def crown_pixels(rgb: np.ndarray) -> np.ndarray:
+    """Pixels of the 3D crowns (crowns_3d.qml: diffuse 70,120,24, ambient 64,110,24, Phong-shaded): in the
+    light a saturated yellow green (red about 0.55 and blue about 0.2 of green), in the shade a dark green
+    with next to no blue (about 15,45,4 under QGIS 3.22's default light).  The 2D map's greens (crowns.qml's
+    yellow-green ramp, half transparent; tree_tops.qml and its dark outline 11,61,11) are paler or bluer."""
+    r, g, b = (rgb[..., i].astype(np.int32) for i in range(3))
+    lit = (g > 40) & (g < 250) & (100 * r > 40 * g) & (100 * r < 72 * g) & (100 * b < 40 * g)
+    shade = (g >= 32) & (b <= 8) & (2 * r < g)
+    return lit | shade
+
+
+def tree_pixels(rgb: np.ndarray) -> np.ndarray:
+    """Pixels of trees in a 3D view: bark (:func:`bark_pixels`) or crowns (:func:`crown_pixels`).  The maps
+    under them (greys, the crowns' greens, white) have neither colour."""
+    return bark_pixels(rgb) | crown_pixels(rgb)
 
 
 def tree_share(png: Path) -> float:
@@ -89,7 +107,9 @@ def desktop_session(sample: Path, workdir: Path, timeout_s: float = 1200.0, stal
     is killed and run once more from the start, and the report says so (``attempts``): Qt3D 5.15 in QGIS 3.22
     now and then deadlocks while it creates a 3D view (the main thread waits in
     ``QAspectEngine::setRootEntity`` for the render thread, which waits for it), which no timer inside the
-    frozen application can end."""
+    frozen application can end.  One cause is known and avoided: a Python QgsTask running meanwhile (the
+    plugin's warm-up, on a first load after ``core/`` changed) holds a pooled thread waiting for the GIL,
+    which the main thread holds there; ``desktop_outputs.py`` opens its 3D views once no task runs."""
     if shutil.which("xvfb-run") is None or shutil.which("qgis") is None:
         raise RuntimeError("needs xvfb-run and qgis (Debian: apt-get install -y xvfb qgis)")
     workdir.mkdir(parents=True, exist_ok=True)
@@ -169,7 +189,8 @@ def main(argv=None) -> int:
         rgb = pixels(shots / "view3d_pipeline.png")
         print(f"{args.out_dir / 'trees_3d.png'}: {rgb.shape[1]} x {rgb.shape[0]} px, QGIS 3D view with the camera of "
               f"a new view: {100 * tree_share(shots / 'view3d_pipeline.png'):.1f} % of the pixels are trees "
-              f"({100 * tree_share(shots / 'view3d_pipeline_no_models.png'):.2f} % with models_3d hidden); "
+              f"({100 * tree_share(shots / 'view3d_pipeline_no_crowns.png'):.1f} % with crowns_3d hidden, "
+              f"{100 * tree_share(shots / 'view3d_pipeline_no_models.png'):.2f} % with both 3D layers hidden); "
               f"after exportmodels alone: {100 * tree_share(shots / 'view3d_exportmodels.png'):.1f} %")
         print(f"{args.out_dir / 'crowns_2d.png'}: the pipeline's layers as loaded by its dialog: "
               + ", ".join(f"{layer['name']} ({layer['renderer'] or 'table'})" for layer in report["layers"]))

@@ -310,3 +310,82 @@ def test_shipped_styles(qgis_app, qml, uri):
             assert c.red() > c.green() > c.blue()
         else:                                                          # green
             assert c.green() > c.red() and c.green() > c.blue()
+
+
+def _closed_outward_containing(vertices, faces, point):
+    """Whether a triangle mesh is closed (every edge in two faces, in opposite directions), bounds a positive
+    volume (faces outward) and holds ``point`` (inside or on it, 1 mm)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    directed = {tuple(e) for e in edges.tolist()}
+    closed = len(directed) == len(edges) and all((b, a) in directed for a, b in directed)
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    normals = np.cross(b - a, c - a)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    inside = (np.einsum("ij,ij->i", normals, point - a) <= 1e-3).all()
+    return closed and volume > 0 and inside
+
+
+def test_crowns_3d_layer_closes_each_crown_over_its_top(modelled, tmp_path):
+    """CROWNS_3D: one closed, outward, low-poly hull a tree from its leaves, holding the model's top, in the
+    source CRS, with base_z (the clamping of crowns_3d.qml); written to one GeoPackage with MODELS_3D, valid."""
+    from test_gpkg import validate
+
+    glb, models, frame = modelled
+    out = tmp_path / "m3d.gpkg"
+    run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "exportmodels", f"--INPUT={glb}",
+                          f"--MODELS_3D={out}", f"--CROWNS_3D={out}"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert validate(out) == ""
+    layer = read_gpkg(out, "crowns_3d")
+    np.testing.assert_array_equal(layer.columns["tree_id"], [m.tree_id for m in models])
+    np.testing.assert_allclose(layer.columns["base_z"], [m.base[2] for m in models], atol=1e-3)
+    assert len(read_gpkg(out, "models_3d")) == len(models)
+    for k, m in enumerate(models):
+        g = layer.geometries[k]
+        assert g.geom_type == "MultiPolygon" and g.has_z
+        assert layer.columns["n_triangles"][k] == len(g.geoms) <= 82
+        tri = np.array([shapely.get_coordinates(p, include_z=True)[:3] for p in g.geoms])
+        vertices, faces = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+        faces = faces.reshape(-1, 3)
+        local = m.all_local_vertices()
+        top = m.base + local[np.argmax(local[:, 2])]
+        assert _closed_outward_containing(vertices, faces, top)
+        # the envelope of the leaves: its corners are leaf vertices (or the top), it spans the leaves' height
+        leaves = m.base + m.leaf_arrays()[0]
+        d, _ = cKDTree(np.vstack([leaves, top])).query(vertices)
+        assert d.max() < 1e-3
+        assert vertices[:, 2].max() == pytest.approx(top[2], abs=1e-3)
+
+
+def test_crown_hull_is_bounded_closed_and_keeps_the_top():
+    """core/export/crowns3d.py on random crowns: <= 2 (k + 2 + 1) - 4 faces, closed, outward, top held; None
+    for a flat or tiny crown; point_crowns groups by label and places each hull at its origin."""
+    from sylva.core.export.crowns3d import N_DIRECTIONS, crown_hull, crowns_table, point_crowns
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        pts = rng.normal(size=(int(rng.integers(5, 4000)), 3)) * [3.0, 2.0, 5.0] + [0, 0, 15]
+        top = pts[[np.argmax(pts[:, 2])]] + [0.5, 0.0, 1.0]          # a top above every point
+        v, f = crown_hull(pts, keep=top)
+        assert len(f) <= 2 * (N_DIRECTIONS + 3) - 4 and len(f) == 2 * len(v) - 4
+        assert _closed_outward_containing(v, f, top[0])
+        assert v[:, 2].max() == pytest.approx(top[0, 2])
+    assert crown_hull(np.zeros((3, 3))) is None
+    assert crown_hull(np.column_stack([rng.random(50), rng.random(50), np.zeros(50)])) is None
+    # two trees, labels interleaved, in a CRS of feet on all axes
+    xyz = np.vstack([rng.normal(size=(200, 3)) + [100, 200, 30], rng.normal(size=(300, 3)) + [110, 200, 40]])
+    labels = np.repeat([7, 9], [200, 300])
+    perm = rng.permutation(len(xyz))
+    origins = np.array([[100.0, 200.0, 0.0], [110.0, 200.0, 0.0]])
+    tops = np.array([xyz[:200][np.argmax(xyz[:200, 2])], xyz[200:][np.argmax(xyz[200:, 2])]])
+    feet = np.full(3, 0.3048)
+    hulls = point_crowns(xyz[perm], labels[perm], np.array([7, 9]), origins, feet, tops)
+    table = crowns_table([7, 9, 11], hulls + [None], np.vstack([origins, origins[:1]]), feet, [0.0] * 3, None)
+    assert table.geometries[2] is None and list(table.columns["n_triangles"][:2]) == [len(h[1]) for h in hulls]
+    table = crowns_table([7, 9], hulls, origins, feet, [0.0, 0.0], None)
+    for k, g in enumerate(shapely.from_wkb(table.geometries)):
+        coords = shapely.get_coordinates(g, include_z=True)
+        d, _ = cKDTree(xyz[labels == [7, 9][k]]).query(coords)
+        assert d.max() < 1e-9                                          # corners are the tree's own points
+    np.testing.assert_allclose(table.extent, shapely.total_bounds(shapely.from_wkb(table.geometries)))

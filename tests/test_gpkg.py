@@ -634,10 +634,10 @@ def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app)
     forest, part = tmp_path / "run" / "forest.gpkg", tmp_path / "run" / "parts" / "sample.gpkg"
     glb = next((tmp_path / "run" / "models").glob("*.glb"))
     m3d = tmp_path / "m3d.gpkg"
-    assert main(["--quiet", "exportmodels", f"--INPUT={glb}", f"--MODELS_3D={m3d}"]) == 0
+    assert main(["--quiet", "exportmodels", f"--INPUT={glb}", f"--MODELS_3D={m3d}", f"--CROWNS_3D={m3d}"]) == 0
     styled = {all_: {"crowns", "tree_tops", "crown points 'all'"},
-              forest: {"tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d"}, part: set(),
-              m3d: {"models_3d"}}
+              forest: {"tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d", "crowns_3d"},
+              part: set(), m3d: {"models_3d", "crowns_3d"}}
     for path, want in styled.items():
         assert validate(path) == "", path
         check_rtrees(path)
@@ -653,4 +653,14 @@ def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app)
     layer = QgsVectorLayer(f"{m3d}|layername=models_3d", "m", "ogr")
     assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "nullSymbol"   # 3D only: no 2D symbol
     with closing(sqlite3.connect(m3d)) as con:                     # the 3D symbol travels with the file too
-        assert "renderer-3d" in con.execute("SELECT styleQML FROM layer_styles").fetchone()[0]
+        assert all("renderer-3d" in qml for (qml,) in con.execute("SELECT styleQML FROM layer_styles"))
+    assert len(read_gpkg(forest, "crowns_3d")) == len(read_gpkg(forest, "trees"))
+    from qgis._3d import Qgs3D
+    from qgis.core import QgsApplication
+
+    if QgsApplication.renderer3DRegistry().rendererMetadata("vector") is None:
+        Qgs3D.initialize()   # the desktop does it at start; a bare QgsApplication does not
+    for path in (forest, m3d):
+        layer = QgsVectorLayer(f"{path}|layername=crowns_3d", "c", "ogr")
+        assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "nullSymbol"
+        assert layer.renderer3D() is not None and layer.renderer3D().type() == "vector"

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import shapely
 
 from conftest import ROOT, qgis_process
 
@@ -54,6 +55,17 @@ def test_pipeline_algorithm_writes_the_whole_forest(sample_laz, tmp_path):
     assert len(read_gpkg(out / "forest.gpkg", "skeletons")) == n
     assert len(read_gpkg(out / "forest.gpkg", "crowns")) == n
     assert len(read_gpkg(out / "forest.gpkg", "models_3d")) == n
+    crowns = read_gpkg(out / "forest.gpkg", "crowns_3d")      # one crown envelope a tree, across the tiles
+    assert sorted(crowns.columns["tree_id"]) == sorted(trees.columns["tree_id"])
+    assert all(g is not None for g in crowns.geometries) and crowns.columns["n_triangles"].max() <= 82
+    from test_export_algorithm import _closed_outward_containing
+
+    tops = read_gpkg(out / "forest.gpkg", "tree_tops")
+    top_of = dict(zip(tops.columns["tree_id"].tolist(), shapely.get_coordinates(tops.geometries, include_z=True)))
+    for tree_id, g in zip(crowns.columns["tree_id"].tolist(), crowns.geometries):   # closed, over the tree's top
+        tri = np.array([shapely.get_coordinates(p, include_z=True)[:3] for p in g.geoms])
+        vertices, faces = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+        assert _closed_outward_containing(vertices, faces.reshape(-1, 3), top_of[tree_id])
     # per-tile GLBs hold every owned tree once; the run's tileset points at every tile's tileset
     names = []
     for glb in sorted((out / "models").glob("*.glb")):

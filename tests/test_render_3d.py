@@ -4,6 +4,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
+import pytest  # noqa: E402
 import render_3d  # noqa: E402
 
 SHOTS = ROOT / "resources" / "screenshots"
@@ -15,23 +16,31 @@ def test_readme_pictures_are_the_default_3d_view_and_the_map(qgis_app):
         assert (SHOTS / name).exists(), "scripts/render_3d.py writes it"
         assert f"resources/screenshots/{name}" in readme
     trees = render_3d.tree_pixels(render_3d.pixels(SHOTS / "trees_3d.png"))
-    assert trees.mean() > 0.02
+    assert trees.mean() > 0.3                      # crowns: 40.7 % (the wood alone 4.7 %)
     rgb = render_3d.pixels(SHOTS / "crowns_2d.png").astype(int)
     assert ((rgb[..., 1] > rgb[..., 0] + 10) & (rgb[..., 1] > rgb[..., 2] + 5)).mean() > 0.2
 
 
-def test_tree_pixels_are_the_bark_colour_not_the_maps():
+def test_tree_pixels_are_the_bark_and_crown_colours_not_the_maps():
     import numpy as np
 
     bark = np.array([[[139, 90, 43], [70, 45, 22], [200, 140, 70]]], dtype=np.uint8)
-    maps = np.array([[[235, 235, 235], [50, 50, 50], [46, 125, 50], [120, 198, 121], [255, 255, 255]]],
+    # crowns_3d.qml: in the light (ambient 64,110,24 to ambient + diffuse 134,230,48) and in the shade
+    crowns = np.array([[[64, 110, 24], [99, 170, 36], [134, 230, 48], [8, 40, 0], [16, 48, 0], [24, 56, 4]]],
+                      dtype=np.uint8)
+    # the 2D map's greys and greens (crowns.qml's ramp, half transparent over the CHM; tree_tops.qml), white
+    maps = np.array([[[235, 235, 235], [50, 50, 50], [46, 125, 50], [120, 198, 121], [255, 255, 255],
+                      [0, 104, 55], [49, 163, 84], [194, 230, 153], [142, 199, 160], [27, 77, 27], [11, 61, 11]]],
                     dtype=np.uint8)
-    assert render_3d.tree_pixels(bark).all()
+    assert render_3d.tree_pixels(bark).all() and not render_3d.crown_pixels(bark).any()
+    assert render_3d.tree_pixels(crowns).all() and render_3d.crown_pixels(crowns).all()
     assert not render_3d.tree_pixels(maps).any()
 
 
-def test_3d_style_stands_models_without_base_z_on_their_lowest_point(qgis_app):
-    """models_3d.qml's height is -base_z, or minus the lowest vertex when a layer has no base_z."""
+@pytest.mark.parametrize("style", ["models_3d.qml", "crowns_3d.qml"])
+def test_3d_style_stands_models_without_base_z_on_their_lowest_point(qgis_app, style):
+    """models_3d.qml's and crowns_3d.qml's height is -base_z, or minus the lowest vertex when a layer has no
+    base_z."""
     from qgis._3d import Qgs3D, QgsPolygon3DSymbol, QgsVectorLayer3DRenderer
     from qgis.core import (QgsApplication, QgsExpressionContext, QgsExpressionContextUtils, QgsFeature,
                            QgsGeometry, QgsVectorLayer)
@@ -50,7 +59,7 @@ def test_3d_style_stands_models_without_base_z_on_their_lowest_point(qgis_app):
         if base is not None:
             feature.setAttributes([base])
         layer.dataProvider().addFeatures([feature])
-        StyledOutput.get("models_3d.qml").postProcessLayer(layer, _NoProject(), None)
+        StyledOutput.get(style).postProcessLayer(layer, _NoProject(), None)
         renderer = sip.cast(layer.renderer3D(), QgsVectorLayer3DRenderer)
         prop = sip.cast(renderer.symbol(), QgsPolygon3DSymbol).dataDefinedProperties().property(
             QgsPolygon3DSymbol.PropertyHeight)

@@ -12,7 +12,7 @@ from ..atomic import atomic_path, move_into_place, temporary_beside
 from .gpkg import GpkgMerge, default_styles
 
 #: The layers of a run's forest.gpkg, in the order QGIS lists them.
-LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d")
+LAYERS = ("trees", "tree_tops", "crowns", "crown_points", "stem_points", "skeletons", "models_3d", "crowns_3d")
 
 
 def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = None) -> Path:
@@ -22,8 +22,8 @@ def merge_gpkg(parts: Sequence[Path], path, id_maps: Optional[Sequence[dict]] = 
     R-tree per geometry column and carries Sylva's QGIS styles in ``layer_styles``.
 
     ``id_maps`` (one {old: new} per part) rewrites ``tree_id`` values on the way.
-    The 3D layer (``models_3d``, core/export/gpkg3d.py) is written per tile by the
-    pipeline and merged here like the others.
+    The 3D layers (``models_3d``, core/export/gpkg3d.py; ``crowns_3d``, core/export/crowns3d.py)
+    are written per tile by the pipeline and merged here like the others.
     """
     parts = [Path(p) for p in parts]
     id_maps = list(id_maps or [{}] * len(parts))
