@@ -737,30 +737,38 @@ def mean_radius_factor(sides) -> np.ndarray:
 
 
 def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m: float = 0.03,
-              thin_sides: int = 3, thin_radius_m: float = 0.008, tolerance_m=None, match: bool = False):
+              thin_sides: int = 3, thin_radius_m: float = 0.008, tolerance_m=None, match: bool = False,
+              pointed_m: float = 0.0):
     """(vertices, faces) of all branch tubes (RMF frames, each end closed by a fan of its own ring, no
     centre vertex).  Sides per tube: with ``tolerance_m``, the fewest (3 to ``sides``) whose chord error at
     the tube's largest radius is at most ``tolerance_m`` (:func:`polygon_sides`); otherwise ``sides`` for
     branches whose largest radius reaches ``twig_radius_m``, ``twig_sides`` for thinner ones,
     ``thin_sides`` under ``thin_radius_m``.  ``match``: the polygon's circumradius is scaled so that its
     mean distance to the axis is the fitted radius (:func:`mean_radius_factor`: the polygon's surface is
-    on average where the circle's is, not inside it).  Sylva: the polygon is finer where it is seen."""
+    on average where the circle's is, not inside it).  Tubes thinner than ``pointed_m`` (largest radius) start at a
+    point, their centre line's first point, not a ring (a twig's base, inside its parent: a cone to the
+    twig's second ring).  Sylva: the polygon is finer where it is seen."""
     from ..geometry import _dedupe, _tube_batch
 
     vs, fs, nv = [], [], 0
     rmax = np.array([float(np.max(r)) if len(r) else 0.0 for r in radii])
     if tolerance_m is not None:
         per = polygon_sides(rmax, float(tolerance_m), sides)
-        groups = [(np.flatnonzero(per == s), int(s)) for s in np.unique(per)]
+        groups = [(np.flatnonzero((per == s) & (rmax >= pointed_m)), int(s)) for s in np.unique(per)]
+        groups += [(np.flatnonzero((per == s) & (rmax < pointed_m)), -int(s)) for s in np.unique(per)]
     else:
-        groups = [(np.flatnonzero((lo <= rmax) & (rmax < hi)), s) for lo, hi, s in
+        groups = [(np.flatnonzero((lo <= rmax) & (rmax < hi) & (rmax >= pointed_m)), s) for lo, hi, s in
                   ((twig_radius_m, np.inf, sides), (thin_radius_m, twig_radius_m, twig_sides),
                    (-1.0, thin_radius_m, thin_sides))]
+        groups += [(np.flatnonzero((lo <= rmax) & (rmax < hi) & (rmax < pointed_m)), -s) for lo, hi, s in
+                   ((twig_radius_m, np.inf, sides), (thin_radius_m, twig_radius_m, twig_sides),
+                    (-1.0, thin_radius_m, thin_sides))]
     for sel, s in groups:
         sel = [k for k in sel if len(curves[k]) >= 2]
         if not sel:
             continue
-        s = max(3, int(s))
+        pointed = s < 0                      # (a negative side count marks the pointed group)
+        s = max(3, abs(int(s)))
         pts = np.concatenate([curves[k] for k in sel])
         rad = np.concatenate([radii[k] for k in sel])
         if match:
@@ -772,15 +780,28 @@ def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m
         v, f, _ = _tube_batch(pts, rad, off, s, False)
         n = len(pts)
         lines = np.flatnonzero(np.diff(off) >= 2)
-        if len(lines) and s >= 3:
+        if len(lines):
             # the ends: a fan from each end ring's first corner (the ring is a planar convex polygon)
             j = np.arange(1, s - 1)[:, None]
             first, last = off[lines][None], (off[lines + 1] - 1)[None]
-            caps = np.concatenate([np.stack([np.broadcast_to(first, (s - 2, len(lines))), (j + 1) * n + first,
-                                             j * n + first], -1).reshape(-1, 3),
-                                   np.stack([np.broadcast_to(last, (s - 2, len(lines))), j * n + last,
-                                             (j + 1) * n + last], -1).reshape(-1, 3)])
-            f = np.concatenate([f, caps])
+            caps = [np.stack([np.broadcast_to(last, (s - 2, len(lines))), j * n + last,
+                              (j + 1) * n + last], -1).reshape(-1, 3)]
+            if not pointed:
+                caps.append(np.stack([np.broadcast_to(first, (s - 2, len(lines))), (j + 1) * n + first,
+                                      j * n + first], -1).reshape(-1, 3))
+            f = np.concatenate([f] + caps)
+        if pointed and len(lines):
+            # every corner of the first ring becomes its centre: the side quads there turn into triangles
+            start = off[lines]
+            v[start] = pts[start]
+            remap = np.arange(len(v))
+            remap[(np.arange(1, s)[:, None] * n + start[None]).ravel()] = np.tile(start, s - 1)
+            f = remap[f]
+            f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+            used = np.zeros(len(v), dtype=bool)
+            used[f.ravel()] = True
+            new = np.cumsum(used) - 1
+            v, f = v[used], new[f]
         vs.append(v)
         fs.append(f + nv)
         nv += len(v)
