@@ -154,3 +154,32 @@ def test_thick_stem_is_one_fitted_tube_not_parallel_thin_ones():
             if np.hypot(*c[k, :2]) < 0.1 and r.max() > 0.1:
                 crossing += 1
     assert crossing == 1
+
+
+def test_tube_polygons_fans_and_pointed_twigs():
+    """Sides from the chord tolerance, polygons as far from the axis on average as the circle, ends closed by
+    fans of their own rings (no centre vertex), twigs starting at a point: every tube closed and outward."""
+    import trimesh
+
+    from sylva.core.reconstruct.levelset import mean_radius_factor, polygon_sides
+
+    assert polygon_sides([0.002, 0.016, 0.05, 0.5], 0.008, 8).tolist() == [3, 3, 6, 8]
+    r = np.array([0.002, 0.016, 0.05])
+    n = polygon_sides(r, 0.008, 8)
+    assert (r * (1 - np.cos(np.pi / n)) <= 0.008 + 1e-12).all()
+    assert (r * (1 - np.cos(np.pi / (n - 1))) > 0.008)[n > 3].all()      # the fewest (3 at least)
+    # mean distance to the axis of a regular polygon, numerically
+    for s in (3, 6, 10):
+        th = np.linspace(0, np.pi / s, 20001)
+        assert np.mean(np.cos(np.pi / s) / np.cos(th)) == pytest.approx(mean_radius_factor(s), rel=1e-4)
+    curves = [np.array([[0, 0, 0], [0, 0, 1.0], [0, 0.1, 2.0]]), np.array([[0, 0, 1.0], [0.5, 0, 1.2], [1, 0, 1.3]])]
+    radii = [np.array([0.1, 0.1, 0.05]), np.array([0.005, 0.004, 0.003])]
+    v0, f0 = tube_mesh(curves, radii, sides=8, tolerance_m=0.008)
+    v1, f1 = tube_mesh(curves, radii, sides=8, tolerance_m=0.008, match=True, pointed_m=0.008)
+    assert len(v0) == 3 * 8 + 3 * 3 and len(v1) == 3 * 8 + 1 + 2 * 3
+    for v, f in ((v0, f0), (v1, f1)):
+        parts = trimesh.Trimesh(v, f, process=False).split(only_watertight=False)
+        assert len(parts) == 2 and all(p.is_watertight and p.is_winding_consistent and p.volume > 0 for p in parts)
+    # the matched stem's polygon is on average as far from the axis as its radius
+    ring = v1[np.arange(8) * 3 + 0]          # corner j of ring 0 of the stem batch: vertex j * n + 0, n = 3
+    assert np.linalg.norm(ring[:, :2], axis=1).mean() * mean_radius_factor(8) == pytest.approx(0.1, rel=1e-9)
