@@ -173,13 +173,15 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m sylva.plugin.warmup", description=__doc__.split("\n\n")[0])
     parser.add_argument("--if-needed", action="store_true", help="do nothing when the stamp says it was done")
+    parser.add_argument("--progress", action="store_true",
+                        help="also print 'progress FRACTION MESSAGE' lines (the QGIS plugin reads them)")
     ns = parser.parse_args(argv)
     if ns.if_needed and is_warm():
         print("sylva warm-up: kernels already compiled and cached")
         return 0
     print("sylva warm-up: compiling Sylva's kernels once (about a minute on 2 cores; later runs load the cache)...",
           flush=True)
-    s = warm_up()
+    s = warm_up(progress=(lambda f, m="": print(f"progress {f:.3f} {m}", flush=True)) if ns.progress else None)
     print(f"sylva warm-up: {s['compiled']} of {s['kernels']} kernels compiled or loaded in {s['seconds']} s "
           f"({s['compile_seconds']} s compiling)" + (f"; not reached by the warm-up: {', '.join(s['unused'])}"
                                                      if s["unused"] else ""))
