@@ -181,8 +181,8 @@ def map_2d():
 
 
 def when_no_tasks(then, timeout_s=600.0):
-    """Call ``then`` once no QgsTask runs.  A Python task (the plugin's first-load warm-up, plugin/main.py)
-    running while a 3D view is created deadlocks QGIS 3.22: the main thread, holding Python's GIL, waits in
+    """Call ``then`` once no QgsTask runs.  A Python task (as the plugin's first-load warm-up was before it
+    moved to a process of its own, plugin/main.py) running while a 3D view is created deadlocks QGIS 3.22: the main thread, holding Python's GIL, waits in
     Qt3D's ``QAspectEngine::setRootEntity`` for a function to run on every pooled thread, and the task's
     thread waits for the GIL (seen with gdb)."""
     start = time.time()
