@@ -3,8 +3,9 @@ the trees with the camera it starts with (QGIS 3.22, its flat terrain at 0 m).
 
 One desktop session under Xvfb (``scripts/render_3d.py``'s ``desktop_session``: ``xvfb-run qgis --code
 scripts/desktop_outputs.py``) runs ``sylva:pipeline`` from its dialog on the bundled sample (Run pressed), then
-``sylva:exportmodels`` from its dialog on the run's GLB; the screenshots stay in pytest's temporary folder.
+``sylva:exportmodels`` from its dialog on the run's GLB; the screenshots are kept in tests/artefacts/desktop-outputs/ (git-ignored).
 """
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -33,6 +34,11 @@ def session(sample_laz, tmp_path_factory):
         pytest.skip("no .qgis-profile with the plugin enabled: run scripts/setup.sh")
     work = tmp_path_factory.mktemp("desktop")
     report = render_3d.desktop_session(Path(sample_laz).resolve(), work, timeout_s=1500)
+    # the screenshots stay as test artefacts (git-ignored), beside the dialogs' of test_desktop.py
+    keep = ROOT / "tests" / "artefacts" / "desktop-outputs"
+    shutil.rmtree(keep, ignore_errors=True)
+    shutil.copytree(report["shots"], keep)
+    (keep / "report.json").write_text(json.dumps({k: v for k, v in report.items() if k != "log"}, indent=1))
     assert report.get("error") is None, (report.get("error"), report["log"])
     # every step ran and wrote its report; QGIS 3.22 sometimes aborts afterwards, while Qt3D tears down a
     # closed 3D view's window at exit (Qgs3DMapCanvasDockWidget destructor): that is not Sylva's
