@@ -88,6 +88,35 @@ def test_a_file_cut_into_chunks_gives_the_trees_of_the_whole_file(stand, tmp_pat
     assert sorted(again.skipped) == sorted(t["name"] for t in chunked.tiles)
 
 
+def test_chunks_with_two_workers_finish(sample_laz, tmp_path):
+    """The cut decodes the LAZ in the run's own process before it forks its workers: with lazrs's thread pool
+    (laspy's default) the forked workers waited for its threads forever, at their first LAZ write."""
+    import subprocess
+    import sys
+
+    import laspy
+
+    las = laspy.read(sample_laz)      # four copies side by side: chunks of 126k points, LAZ written in chunks
+    copies = []
+    for dx in (0, 100):
+        for dy in (0, 100):
+            a = las.points.array.copy()
+            a["X"] += int(round(dx / las.header.scales[0]))
+            a["Y"] += int(round(dy / las.header.scales[1]))
+            copies.append(a)
+    four = laspy.LasData(las.header)
+    four.points = laspy.ScaleAwarePointRecord(np.concatenate(copies), las.header.point_format, las.header.scales,
+                                              las.header.offsets)
+    four.update_header()
+    four.write(tmp_path / "four.laz")
+    out = subprocess.run([sys.executable, "-m", "sylva.cli", "pipeline", f"--INPUT={tmp_path / 'four.laz'}",
+                          "--CHUNK_SIZE_M=100", "--WORKERS=2", "--RECONSTRUCT=false",
+                          f"--OUTPUT_FOLDER={tmp_path / 'out'}"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert len(rep["tiles"]) == 4 and rep["failures"] == [] and len(rep["peak_rss_mb_per_worker"]) == 2
+
+
 def test_too_many_chunks_is_one_line(stand, tmp_path):
     from dataclasses import replace
 

@@ -69,7 +69,8 @@ def cut_into_chunks(tile: Tile, folder, chunk_m: float, crs=None, cancelled: Can
     writers: Dict[Tuple[int, int], object] = {}   # one open writer per chunk: the file is read once
     temporary: Dict[Tuple[int, int], Path] = {}
     try:
-        header, records = checked_records(tile.path, READ_POINTS, cancelled)   # a damaged file fails here
+        # a damaged file fails here; decoded on this thread: the run forks its workers after the cut
+        header, records = checked_records(tile.path, READ_POINTS, cancelled, parallel=False)
         for points in records:
             ix = np.floor(np.asarray(points.x) / size).astype(np.int64)
             iy = np.floor(np.asarray(points.y) / size).astype(np.int64)

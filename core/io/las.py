@@ -429,11 +429,30 @@ def tree_labels(values, where: str = "treeID") -> np.ndarray:
     return out
 
 
-def _open(path: Path):
+#: True once this process decoded LAZ with lazrs's multi-threaded backend (laspy's default): its thread pool
+#: (rayon) does not survive a fork, and a forked child that compresses or decompresses LAZ then waits for
+#: those threads forever (seen: a pipeline's pool workers after the parent cut a file into chunks).
+PARALLEL_LAZ_USED = False
+
+
+def _parallel_laz_used() -> None:
+    global PARALLEL_LAZ_USED
+    PARALLEL_LAZ_USED = True
+
+
+def _decoding(reader) -> None:
+    """Note that points of ``reader`` are about to be decoded (see PARALLEL_LAZ_USED)."""
+    if getattr(reader, "sylva_parallel", False):
+        _parallel_laz_used()
+
+
+def _open(path: Path, parallel: bool = True):
     laspy = _laspy()
     reader = None
     try:
-        reader = laspy.open(str(path))
+        backend = None if parallel else laspy.LazBackend.Lazrs
+        reader = laspy.open(str(path), laz_backend=backend) if backend is not None else laspy.open(str(path))
+        reader.sylva_parallel = parallel and reader.header.are_points_compressed
         _check_size(path, reader.header)
     except Exception as err:
         if reader is not None:
@@ -512,6 +531,7 @@ def read_las(path, crs=None, *, units: Optional[Units] = None, allow_empty: bool
         if header.point_count == 0 and not allow_empty:
             raise EmptyInputError(f"{path}: the file holds no points")
         try:
+            _decoding(reader)
             las = reader.read()
         except Exception as err:
             raise _bad_file(path, err) from None
@@ -563,13 +583,14 @@ def _chunks(reader, path, chunk_size, crs, units, parsed, progress, cancelled):
         report(progress, done / total, f"read {done} of {header.point_count} points")
 
 
-def checked_records(path, chunk_size: int = 1_000_000, cancelled: CancelCheck = None):
+def checked_records(path, chunk_size: int = 1_000_000, cancelled: CancelCheck = None, parallel: bool = True):
     """``(header, records)``: the file's laspy header and an iterator over its point records (laspy's
     ``ScaleAwarePointRecord``, at most ``chunk_size`` at a time), with every check :func:`read_las` makes
     (truncation, chunk table, bounds, point count, decode errors: one :class:`InputError` naming the
-    file).  For code that copies records unchanged (``sylva.core.io.chunks``)."""
+    file).  For code that copies records unchanged (``sylva.core.io.chunks``).  ``parallel`` False decodes
+    on this thread only (lazrs without its thread pool: safe in a process that forks afterwards)."""
     path = _check_file(path)
-    reader = _open(path)
+    reader = _open(path, parallel)
     return reader.header, _checked_records(reader, path, int(chunk_size), cancelled)
 
 
@@ -577,6 +598,7 @@ def _checked_records(reader, path, chunk_size, cancelled):
     with reader:
         header = reader.header
         done = 0
+        _decoding(reader)
         iterator = reader.chunk_iterator(chunk_size)
         while True:
             check(cancelled)
@@ -930,6 +952,8 @@ def write_las(path, cloud: PointCloud, extra: Optional[dict] = None, *,
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part")
     try:
         with open(tmp, "xb") as out:
+            if compress:          # laspy compresses with lazrs's thread pool
+                _parallel_laz_used()
             las.write(out, do_compress=compress)
         check(cancelled)
         os.replace(tmp, path)
