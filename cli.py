@@ -333,10 +333,14 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
 def run() -> None:
     """The process entry point (the ``sylva`` command and ``python -m sylva.cli``): exit with main()'s code.
 
-    Once main() has returned, Ctrl-C and SIGTERM are ignored: the outputs are complete (or rolled back), and
-    a signal arriving while Python shuts down must not turn main()'s exit code into death by that signal
-    (which Python does for an escaping KeyboardInterrupt).
+    Once main() has returned, Ctrl-C and SIGTERM are ignored: the outputs are complete (or rolled back).  A
+    cancelled or terminated run (130, 143) then leaves at once, without the interpreter's shutdown: the
+    interrupt may have landed inside a library's own initialisation (numba and llvmlite are imported on a
+    kernel's first call; a Cython module runs code through ``PyRun_String`` while imported), and that
+    half-initialised library's finalizers crashed the exit (SIGSEGV) or turned 130 into death by SIGINT
+    (Python's unhandled-interrupt flag).  Sylva's own clean-up has run by then (main()'s ``finally``).
     """
+    import os
     import signal
 
     try:
@@ -346,26 +350,13 @@ def run() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if code in (130, 143):
-        _forget_unhandled_interrupt()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
     sys.exit(code)
-
-
-def _forget_unhandled_interrupt() -> None:
-    """Clear CPython's "a KeyboardInterrupt went unhandled" flag, which makes the interpreter kill itself
-    with SIGINT at exit (exit status -2 instead of 130).
-
-    Cython modules run snippets through ``PyRun_StringFlags`` while they are imported (numpy.random._common,
-    scipy.spatial.transform._rotation): a Ctrl-C inside one escapes that nested run, which sets the flag,
-    although main() handled the interrupt.  Every ``PyRun_*`` call clears the flag before it runs
-    (pythonrun.c, run_eval_code_obj), so running an empty statement clears it.  Measured: 2 of 60 Ctrl-Cs
-    during start-up ended in -2 before, 0 of 80 after.
-    """
-    try:
-        import ctypes
-
-        ctypes.pythonapi.PyRun_SimpleString(b"pass")
-    except (ImportError, AttributeError, OSError):  # not CPython: no such flag
-        pass
 
 
 if __name__ == "__main__":
