@@ -22,6 +22,7 @@ import numpy as np
 
 from .cloud import PointCloud
 from .jit import njit
+from .kernels.buckets import bucket_by_cell
 
 NOISE_CLASSES = (7, 18)
 
@@ -160,21 +161,13 @@ def _grid_buckets(xy, x0, y0, cell, nx, ny):
     """:func:`grid_buckets`'s counting sort; empty arrays when a point falls off the grid."""
     n = len(xy)
     key = np.empty(n, dtype=np.int64)
-    starts = np.zeros(nx * ny + 1, dtype=np.int64)
     for i in range(n):
         fx = np.floor((xy[i, 0] - x0) / cell)
         fy = np.floor((xy[i, 1] - y0) / cell)
         if not (fx >= 0 and fx < nx and fy >= 0 and fy < ny):
-            return np.empty(0, dtype=np.int64), starts, key
+            return np.empty(0, dtype=np.int64), np.zeros(nx * ny + 1, dtype=np.int64), key
         key[i] = int(fx) * ny + int(fy)
-        starts[key[i] + 1] += 1
-    for g in range(nx * ny):
-        starts[g + 1] += starts[g]
-    fill = starts[:-1].copy()
-    order = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        order[fill[key[i]]] = i
-        fill[key[i]] += 1
+    starts, order = bucket_by_cell(key, nx * ny)
     return order, starts, key[order]
 
 
