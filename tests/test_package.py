@@ -70,3 +70,15 @@ def test_missing_packages_message_names_the_python_qgis_runs(monkeypatch):
     assert ran.stdout.split() == [str(v) for v in sys.version_info[:2]]
     hint = deps.install_hint(["laspy", "numpy<2"])
     assert f"{python} -m pip install" in hint and '"numpy<2"' in hint and "laspy" in hint
+
+
+def test_pyproject_lists_every_package():
+    """A non-editable install (``pip install .``) takes only the listed packages: every folder of the plugin
+    with an ``__init__.py`` must be there (core/kernels was missing, so such an install could not import)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"sylva"} | {"sylva." + ".".join(p.parent.relative_to(ROOT).parts)
+                         for folder in ("algorithms", "core", "plugin", "processing", "testing")
+                         for p in (ROOT / folder).rglob("__init__.py")}
+    assert found == listed, (sorted(found - listed), sorted(listed - found))
