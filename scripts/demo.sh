@@ -17,7 +17,7 @@ run sylva:canopyheightmodel --INPUT="$sample" --RESOLUTION_M=0.5 --PIT_FREE=true
 run sylva:exportmodels --INPUT="$out/forest/models/sample.glb" --CITYGML="$out/trees.gml" --OBJ="$out/trees.obj"
 echo
 echo "Outputs are in $out:"
-echo "  forest/forest.gpkg   trees table, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d"
+echo "  forest/forest.gpkg   trees table, tree_tops, crowns, crown_points, stem_points, skeletons, models_3d, crowns_3d"
 echo "  forest/tiles/        the tile with a treeID per point (normalised cut, Hu et al. 2017)"
 echo "  forest/models/       a georeferenced GLB per tile and a 3D Tiles tileset (Cesium, QGIS >= 3.34)"
 echo "  forest/report.txt    what was done: tiles, trees, failures, time"
