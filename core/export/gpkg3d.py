@@ -8,9 +8,10 @@ triangle of its (coarsest available) wood mesh is one polygon part, with
 vertices in SOURCE CRS coordinates (``base + v / units``, see
 :mod:`.model`), so the layer sits exactly on the point cloud, the crowns and
 the tree tops.  QGIS 3.22's 3D map view draws it as it is with a polygon 3D
-symbol, altitude clamping "absolute" and extrusion 0 (the style
-``resources/styles/models_3d.qml`` sets that up); no plugin or external
-viewer is needed, and a GeoPackage keeps it.
+symbol, extrusion 0 and altitude clamping "relative" with a height of minus
+the tree's base (the style ``resources/styles/models_3d.qml`` sets that up:
+each tree stands on the terrain, flat or the run's DTM); no plugin or
+external viewer is needed, and a GeoPackage keeps it.
 
 Light by design: the coarsest mesh a model has (``TreeModel.lods[min]``,
 else its wood) and no leaf cards unless asked (``leaves=True`` adds them as
