@@ -8,6 +8,7 @@ sample, or 30 m corners of it) so the whole suite takes about a minute once numb
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -328,19 +329,27 @@ def test_the_same_crs_written_two_ways_is_one_crs(tmp_path, sample_laz):
 
 # --------------------------------------------------------------------------- full disk
 
-@pytest.fixture()
-def tiny_disk(tmp_path):
-    """A 2 MB tmpfs, filled up to its last few kB (skips where mounting is not allowed)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)], capture_output=True).returncode:
+@contextlib.contextmanager
+def filled_tmpfs(folder: Path, size_mb: int, free_kb: int = 0):
+    """A tmpfs of ``size_mb`` at ``folder`` with a filler leaving ``free_kb`` free (skips where mounting is not
+    allowed); unmounted afterwards."""
+    folder.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(folder)],
+                      capture_output=True).returncode:
         pytest.skip("cannot mount a tmpfs here (not root?)")
     try:
-        free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
-        (disk / "filler").write_bytes(bytes(free))   # not one block left
-        yield disk
+        free = os.statvfs(folder).f_bavail * os.statvfs(folder).f_frsize
+        (folder / "filler").write_bytes(bytes(max(free - free_kb * 1024, 0)))
+        yield folder
     finally:
-        subprocess.run(["umount", str(disk)], capture_output=True)
+        subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+@pytest.fixture()
+def tiny_disk(tmp_path):
+    """A 2 MB tmpfs, filled to its last block."""
+    with filled_tmpfs(tmp_path / "disk", 2) as disk:
+        yield disk
 
 
 def _only_filler(disk: Path):
@@ -373,19 +382,11 @@ def test_full_disk_pipeline(tmp_path, corner, free_kb):
     """A disk full from the start (the run lock cannot be written) or filling up during the run: one line
     saying the disk is full, exit 1, and nothing but the filler and the run's report left (no empty lock,
     no parts)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here (not root?)")
-    try:
-        free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
-        (disk / "filler").write_bytes(bytes(max(free - free_kb * 1024, 0)))
+    with filled_tmpfs(tmp_path / "disk", 3, free_kb) as disk:
         out = sylva("pipeline", f"--INPUT={corner}", "--RECONSTRUCT=false", f"--OUTPUT_FOLDER={disk / 'out'}")
         one_line_error(out, "disk is full")
         left = [p for p in disk.rglob("*") if p.is_file() and p.name not in ("filler", "report.txt", "report.json")]
         assert left == [], left      # the report the error line names may stay; nothing else
-    finally:
-        subprocess.run(["umount", str(disk)], capture_output=True)
 
 
 # --------------------------------------------------------------------------- signals, RESUME, locks
