@@ -29,12 +29,12 @@ terrain.  Pure numpy and scipy (Sylva, not in the papers).
 """
 from __future__ import annotations
 
-import struct
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..table import VectorTable
+from .gpkg3d import multipolygon_wkb, triangle_records
 
 __all__ = ["hull_directions", "crown_hull", "point_crowns", "crowns_table", "model_crown_points", "N_DIRECTIONS"]
 
@@ -154,17 +154,12 @@ def crowns_table(tree_ids: Sequence[int], hulls: Sequence, origins: np.ndarray, 
     geometries = np.full(n, None, dtype=object)
     counts = np.zeros(n, dtype=np.int64)
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-    head = struct.pack("<BIII", 1, 1003, 1, 4)
     for i, h in enumerate(hulls):
         if h is None:
             continue
         v, f = h
         xyz = origins[i] + v / scale
-        rings = xyz[np.column_stack([f, f[:, :1]])]                      # (t, 4, 3): a, b, c, a
-        rec = np.empty((len(f), len(head) + 96), dtype=np.uint8)
-        rec[:, :len(head)] = np.frombuffer(head, dtype=np.uint8)
-        rec[:, len(head):] = np.ascontiguousarray(rings, dtype="<f8").reshape(len(f), 12).view(np.uint8)
-        geometries[i] = struct.pack("<BII", 1, 1006, len(f)) + rec.tobytes()
+        geometries[i] = multipolygon_wkb(triangle_records(xyz[np.column_stack([f, f[:, :1]])]))   # a, b, c, a
         counts[i] = len(f)
         lo, hi = np.minimum(lo, xyz[:, :2].min(axis=0)), np.maximum(hi, xyz[:, :2].max(axis=0))
     columns = {"tree_id": np.asarray(tree_ids, dtype=np.int64), "base_z": np.asarray(base_z, dtype=np.float64)}

@@ -33,7 +33,7 @@ from ..jit import njit
 from ..table import VectorTable
 from .model import ExportFrame, TreeModel, cached_attributes, check_models, mesh_arrays
 
-__all__ = ["models_table", "attribute_columns", "MIN_TRIANGLE_AREA_M2"]
+__all__ = ["models_table", "attribute_columns", "triangle_records", "multipolygon_wkb", "MIN_TRIANGLE_AREA_M2"]
 
 #: Triangles smaller than this (m^2) are dropped.
 MIN_TRIANGLE_AREA_M2 = 1e-6
@@ -97,19 +97,29 @@ def models_table(models: Sequence[TreeModel], frame: ExportFrame, leaves: bool =
                                             np.concatenate([f for _, f in parts]).reshape(-1, 3),
                                             pv, pf, np.array(owner, dtype=np.int64),
                                             np.array([m.base for m in models]), scale, MIN_TRIANGLE_AREA_M2)
-    rec = np.empty((len(rings), _TRIANGLE.itemsize), dtype=np.uint8)      # _TRIANGLE records, as bytes
-    rec[:, :_HEADER.size] = _HEADER
-    rec[:, _HEADER.size:] = rings.astype("<f8", copy=False).reshape(len(rings), 12).view(np.uint8)
+    rec = triangle_records(rings)
     geometries = np.full(len(models), None, dtype=object)
     ends = np.cumsum(counts).tolist()
     for i in np.flatnonzero(counts).tolist():
-        a, b = ends[i] - int(counts[i]), ends[i]
-        geometries[i] = struct.pack("<BII", 1, 1006, b - a) + rec[a:b].tobytes()
+        geometries[i] = multipolygon_wkb(rec[ends[i] - int(counts[i]):ends[i]])
     columns = attribute_columns([cached_attributes(m, cache) for m in models])
     columns["n_triangles"] = counts
     extent = (lo[0], lo[1], hi[0], hi[1]) if counts.any() else None
     return VectorTable(name, "polygon", geometries, columns, frame.pyproj_crs(), has_z=True, wkb=True,
                        extent=extent)
+
+
+def triangle_records(rings: np.ndarray) -> np.ndarray:
+    """ISO WKB Polygon Z records of triangles, as bytes (t, 125): ``rings`` (t, 4, 3) holds corners a, b, c, a."""
+    rec = np.empty((len(rings), _TRIANGLE.itemsize), dtype=np.uint8)      # _TRIANGLE records, as bytes
+    rec[:, :_HEADER.size] = _HEADER
+    rec[:, _HEADER.size:] = np.ascontiguousarray(rings, dtype="<f8").reshape(len(rings), 12).view(np.uint8)
+    return rec
+
+
+def multipolygon_wkb(records: np.ndarray) -> bytes:
+    """An ISO WKB MultiPolygon Z of the :func:`triangle_records` ``records``."""
+    return struct.pack("<BII", 1, 1006, len(records)) + records.tobytes()
 
 
 @njit
