@@ -206,17 +206,29 @@ class _Terminated(BaseException):
     """SIGTERM (or SIGHUP) arrived: unwinds like Ctrl-C, so every temporary file is removed."""
 
 
-_SIGNALLED = {"signal": None}   # the last SIGINT/SIGTERM main() received
+_SIGNALLED = {"signal": None, "computing": False}   # the last SIGINT/SIGTERM main() received
+
+
+def _deferred(signum) -> bool:
+    """Record the signal; True when the run should stop at its next cancel check instead of now.
+
+    While an algorithm computes, a signal only sets the flag that :meth:`CliFeedback.cancelled` reports
+    (the run stops at its next check, within a step): an exception raised at any bytecode could land inside
+    a C extension's half-built object (scipy's Qhull and its message stream were torn and the process died
+    with SIGSEGV).  Before the computation, or at a second signal, it is raised at once."""
+    again = _SIGNALLED["signal"] is not None
+    _SIGNALLED["signal"] = signum
+    return _SIGNALLED["computing"] and not again
 
 
 def _on_signal(signum, frame):
-    _SIGNALLED["signal"] = signum
-    raise _Terminated(signum)
+    if not _deferred(signum):
+        raise _Terminated(signum)
 
 
 def _on_interrupt(signum, frame):
-    _SIGNALLED["signal"] = signum
-    raise KeyboardInterrupt
+    if not _deferred(signum):
+        raise KeyboardInterrupt
 
 
 def _rounded(table):
@@ -239,7 +251,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     name = "sylva"
     scratch: list = []
     previous = {}
-    _SIGNALLED["signal"] = None
+    _SIGNALLED["signal"], _SIGNALLED["computing"] = None, False
     try:
         for sig, handler in ((signal.SIGTERM, _on_signal), (getattr(signal, "SIGHUP", None), _on_signal),
                              (signal.SIGINT, _on_interrupt)):
@@ -303,6 +315,7 @@ def _one_line(exc: BaseException) -> str:
 
 def _run(alg: S.Algorithm, ns, scratch: list) -> int:
     from .algorithms.common import OutputGuard, check_paths
+    from .core.progress import check
 
     feedback = CliFeedback(ns.quiet)
     raw = vars(ns)
@@ -311,7 +324,10 @@ def _run(alg: S.Algorithm, ns, scratch: list) -> int:
     check_paths(alg, args, raw=raw)       # again with the temporary outputs filled in
     guard = OutputGuard(alg, args)
     try:
+        _SIGNALLED["computing"] = True
+        check(feedback.cancelled)                     # a signal during the set-up above
         result = alg.run(args, feedback)
+        check(feedback.cancelled)
         paths = write_outputs(alg, args, result)
     except OSError as err:
         guard.rollback()
