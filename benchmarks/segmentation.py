@@ -4,6 +4,8 @@
     python benchmarks/segmentation.py --quick    # throughput at 1 M points only
     python benchmarks/segmentation.py --stands dense --densities 20 --sizes 0
                                                  # one setting of the table, no throughput
+    python benchmarks/segmentation.py --variants '[{}, {"top_window_points": 50}]'
+                                                 # what changing a default trades (table 4 only)
 
 Prints, for every method side by side:
 
@@ -27,7 +29,9 @@ Prints, for every method side by side:
 3. throughput (points/s through the whole segment_trees verb: tops,
    voxels, graph, cuts, labels) and the verb's peak memory (tracemalloc
    peak of a second run; numpy reports its buffers to tracemalloc) and the
-   process's ru_maxrss, one fresh subprocess per size.
+   process's ru_maxrss, one fresh subprocess per size;
+4. with ``--variants``, only: NormalizedCut with given field overrides side
+   by side on a panel of the suite, the sample and MixedConifer.laz.
 """
 import argparse
 import dataclasses
@@ -186,11 +190,73 @@ def _picture(cloud, labels, path, title, reference=None, reference_title="refere
     plt.close(fig)
 
 
-def real_files(out_dir):
-    """MixedConifer agreement with lidR; share of small trees and a crown picture on every real file."""
+def _mixed_conifer():
+    """(cloud, lidR treeID per point, 0 = none) of ../shared/data/als/MixedConifer.laz, whose z is
+    already height above ground."""
     import laspy
 
     from sylva.core.cloud import PointCloud
+
+    path = DATA / "als" / "MixedConifer.laz"
+    las = laspy.read(str(path))
+    xyz = np.column_stack([las.x, las.y, las.z])
+    attrs = {"height": np.asarray(las.z, dtype=np.float64),
+             "classification": np.asarray(las.classification),
+             "intensity": np.asarray(las.intensity),
+             "return_number": np.asarray(las.return_number)}
+    ref = np.asarray(las["treeID"], dtype=np.float64)
+    # lidR writes "no tree" (NA) as the extra-bytes no-data value (the largest double): not a tree
+    ref = np.where(np.isfinite(ref) & (ref > 0) & (ref < 2 ** 31), ref, 0).astype(np.int64)
+    return PointCloud(xyz, attrs=attrs, source=str(path)), ref
+
+
+#: The panel of --variants: (kind, stand, pulses/m2) of the suite, open to dense, 2 to 20 pulses/m2.
+VARIANT_PANEL = (("broadleaf", "open", 20), ("broadleaf", "medium", 5), ("broadleaf", "dense", 20),
+                 ("mixed", "open", 5), ("mixed", "dense", 20), ("conifer", "dense", 20),
+                 ("conifer", "open", 5), ("conifer", "medium", 2))
+
+
+def variant_table(variants, seed=0):
+    """NormalizedCut with each dict of field overrides in ``variants`` ({} = the defaults) side by
+    side: detection F1 on :data:`VARIANT_PANEL`, the shipped sample, and on MixedConifer.laz the
+    number of trees and the median crown IoU with lidR's (what a change of a default trades)."""
+    import laspy
+
+    from sylva.core.io.las import read_las
+    from sylva.core.segment import NormalizedCut, segment_trees
+    from sylva.core.terrain import normalize
+    from sylva.testing.synth import read_truth
+
+    M = _metrics()
+    panel = []
+    for kind, stand_name, density in VARIANT_PANEL:
+        stand, scan = _suite_scan(kind, stand_name, density, seed)
+        panel.append((f"{kind[:5]}-{stand_name[:3]}-{density}", normalize(scan.cloud), scan.truth_tree,
+                      stand.trees))
+    laz = REPO / "resources" / "sample" / "sample.laz"
+    panel.append(("sample", normalize(read_las(str(laz))), np.asarray(laspy.read(str(laz)).true_tree),
+                  read_truth(laz.with_name("sample_trees.csv"))))
+    mixed = _mixed_conifer() if (DATA / "als" / "MixedConifer.laz").exists() else None
+    print("4. NormalizedCut variants (detection F1 per stand; MixedConifer: trees vs lidR's 205, median IoU)")
+    print("   " + " ".join(f"{name:>13s}" for name, *_ in panel) + "   MC trees   IoU   variant")
+    for overrides in variants:
+        method = NormalizedCut(**overrides)
+        row = []
+        for _, cloud, truth, trees in panel:
+            r = M.evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, method), truth, trees)
+            row.append(f"{r['f1']:13.3f}")
+        mc = "      -      -"
+        if mixed is not None:
+            cloud, ref = mixed
+            labels = segment_trees(cloud, method)
+            _, _, ious = M.crown_iou(cloud.xyz[:, :2], labels, ref)
+            mc = f"{len(np.unique(labels[labels > 0])):11d} {np.median(ious):5.3f}"
+        print("   " + " ".join(row) + f"{mc}   {json.dumps(overrides)}", flush=True)
+    print()
+
+
+def real_files(out_dir):
+    """MixedConifer agreement with lidR; share of small trees and a crown picture on every real file."""
     from sylva.core.io.las import read_las
     from sylva.core.segment import segment_trees
     from sylva.core.segment.tile import segment_tile
@@ -202,16 +268,8 @@ def real_files(out_dir):
           "segmenttrees and the pipeline both run)")
     path = DATA / "als" / "MixedConifer.laz"
     if path.exists():
-        las = laspy.read(str(path))
-        xyz = np.column_stack([las.x, las.y, las.z])
-        attrs = {"height": np.asarray(las.z, dtype=np.float64),
-                 "classification": np.asarray(las.classification),
-                 "intensity": np.asarray(las.intensity),
-                 "return_number": np.asarray(las.return_number)}
-        cloud = PointCloud(xyz, attrs=attrs, source=str(path))
-        ref = np.asarray(las["treeID"], dtype=np.float64)
-        # lidR writes "no tree" (NA) as the extra-bytes no-data value (the largest double): not a tree
-        ref = np.where(np.isfinite(ref) & (ref > 0) & (ref < 2 ** 31), ref, 0).astype(np.int64)
+        cloud, ref = _mixed_conifer()
+        xyz = cloud.xyz
         n_lidr = len(np.unique(ref[ref > 0]))
         print(f"   MixedConifer.laz: {len(cloud)} points; lidR treeID: {n_lidr} trees "
               f"(target: within 15 % of 205, median IoU >= 0.7, < 5 % under 20 points)")
@@ -377,6 +435,9 @@ def main(argv=None):
                         help="skip MixedConifer and the shipped sample")
     parser.add_argument("--child-make", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--child-run", nargs=1, help=argparse.SUPPRESS)
+    parser.add_argument("--variants", default=None,
+                        help='JSON list of NormalizedCut field overrides to compare, e.g. '
+                             '\'[{}, {"top_window_points": 50}]\' (only this table is printed)')
     parser.add_argument("--skip-accuracy", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child_make:
@@ -384,6 +445,9 @@ def main(argv=None):
         return
     if args.child_run:
         print(json.dumps(_run_verb(args.child_run[0])))
+        return
+    if args.variants is not None:
+        variant_table(json.loads(args.variants), args.seed)
         return
     if not args.skip_accuracy:
         stands = tuple(s for s in args.stands.split(",") if s)
