@@ -220,12 +220,8 @@ def variant_table(variants, seed=0):
     """NormalizedCut with each dict of field overrides in ``variants`` ({} = the defaults) side by
     side: detection F1 on :data:`VARIANT_PANEL`, the shipped sample, and on MixedConifer.laz the
     number of trees and the median crown IoU with lidR's (what a change of a default trades)."""
-    import laspy
-
-    from sylva.core.io.las import read_las
     from sylva.core.segment import NormalizedCut, segment_trees
     from sylva.core.terrain import normalize
-    from sylva.testing.synth import read_truth
 
     M = _metrics()
     panel = []
@@ -233,9 +229,7 @@ def variant_table(variants, seed=0):
         stand, scan = _suite_scan(kind, stand_name, density, seed)
         panel.append((f"{kind[:5]}-{stand_name[:3]}-{density}", normalize(scan.cloud), scan.truth_tree,
                       stand.trees))
-    laz = REPO / "resources" / "sample" / "sample.laz"
-    panel.append(("sample", normalize(read_las(str(laz))), np.asarray(laspy.read(str(laz)).true_tree),
-                  read_truth(laz.with_name("sample_trees.csv"))))
+    panel.append(("sample", *_sample()))
     mixed = _mixed_conifer() if (DATA / "als" / "MixedConifer.laz").exists() else None
     print("4. NormalizedCut variants (detection F1 per stand; MixedConifer: trees vs lidR's 205, median IoU)")
     print("   " + " ".join(f"{name:>13s}" for name, *_ in panel) + "   MC trees   IoU   variant")
@@ -316,26 +310,34 @@ def _full(tile, n):
     return labels
 
 
-def shipped_sample():
-    """Detection scores on resources/sample/sample.laz against sample_trees.csv."""
+SAMPLE = REPO / "resources" / "sample" / "sample.laz"
+
+
+def _sample():
+    """(normalised cloud, true tree per point, true trees) of the shipped sample."""
     import laspy
 
     from sylva.core.io.las import read_las
+    from sylva.core.terrain import normalize
+    from sylva.testing.synth import read_truth
+
+    return (normalize(read_las(str(SAMPLE))), np.asarray(laspy.read(str(SAMPLE)).true_tree),
+            read_truth(SAMPLE.with_name("sample_trees.csv")))
+
+
+def shipped_sample():
+    """Detection scores on resources/sample/sample.laz against sample_trees.csv."""
+    from sylva.core.io.las import read_las
     from sylva.core.segment import segment_trees
     from sylva.core.segment.tile import segment_tile
-    from sylva.testing.synth import read_truth
-    from sylva.core.terrain import normalize
 
-    laz = REPO / "resources" / "sample" / "sample.laz"
     print("   shipped sample (resources/sample/sample.laz vs sample_trees.csv):")
-    if not laz.exists():
-        print(f"   skipped: {laz} not found\n")
+    if not SAMPLE.exists():
+        print(f"   skipped: {SAMPLE} not found\n")
         return
-    cloud = normalize(read_las(str(laz)))
-    truth = np.asarray(laspy.read(str(laz)).true_tree)
-    trees = read_truth(laz.with_name("sample_trees.csv"))
+    cloud, truth, trees = _sample()
     runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
-    runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(laz))), len(cloud))))
+    runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(SAMPLE))), len(cloud))))
     for name, run in runs:
         labels = run()
         r = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], labels, truth, trees)
@@ -447,7 +449,15 @@ def main(argv=None):
         print(json.dumps(_run_verb(args.child_run[0])))
         return
     if args.variants is not None:
-        variant_table(json.loads(args.variants), args.seed)
+        from sylva.core.segment import NormalizedCut
+
+        try:
+            variants = json.loads(args.variants)
+            for v in variants:
+                NormalizedCut(**v)
+        except (ValueError, TypeError, AttributeError) as err:
+            parser.error(f"--variants: {err}")
+        variant_table(variants, args.seed)
         return
     if not args.skip_accuracy:
         stands = tuple(s for s in args.stands.split(",") if s)
