@@ -70,6 +70,8 @@ def _parser() -> argparse.ArgumentParser:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
         for p in alg.params:
             sub.add_argument(f"--{p.name}", dest=p.name, metavar=_metavar(p), help=_help(p))
+            for old in p.aliases:    # an earlier name: the same value, not listed in --help
+                sub.add_argument(f"--{old}", dest=p.name, metavar=_metavar(p), help=argparse.SUPPRESS)
     return top
 
 
@@ -79,7 +81,7 @@ def _metavar(p: S.Param) -> str:
 
 
 def _help(p: S.Param) -> str:
-    text = f"{p.description}. {p.help}".replace("%", "%%")
+    text = f"{p.description}. {p.help}{S.alias_text(p)}".replace("%", "%%")
     if p.is_output:
         return text + (" (optional: not written when left out)" if p.optional
                        else " (written to a temporary folder when left out)")

@@ -70,6 +70,7 @@ class Param:
     advanced: bool = False
     style: str = ""                 # VECTOR_OUT: a .qml in resources/styles applied when QGIS loads the layer
     labels: Tuple[str, ...] = ()    # ENUM: what the dialog shows for each option (the option ids stay the values)
+    aliases: Tuple[str, ...] = ()   # earlier names still accepted (saved Modeler graphs, scripts, batch files)
 
     def __post_init__(self):
         if self.kind in (NUMBER, INTEGER):
@@ -160,6 +161,19 @@ def display_round(values):
     return np.where(np.isfinite(v), out, v)
 
 
+def with_aliases(alg: "Algorithm", values: Dict[str, Any]) -> Dict[str, Any]:
+    """``values`` (parameter name -> value) with a value given under an earlier name of a parameter
+    (:attr:`Param.aliases`) moved to its current name, unless the current name has a value of its own;
+    the earlier names are removed."""
+    out = dict(values)
+    for p in alg.params:
+        for old in p.aliases:
+            value = out.pop(old, None)
+            if value not in (None, "") and out.get(p.name) in (None, ""):
+                out[p.name] = value
+    return out
+
+
 def check_values(alg: "Algorithm", args: Dict[str, Any]) -> None:
     """Raise InputError with one line naming the first numeric parameter of ``args`` out of its range."""
     from ..core.errors import InputError
@@ -228,10 +242,15 @@ class Algorithm:
         """The long help: the summary, then one paragraph per parameter."""
         lines = [self.summary, ""]
         for p in self.params:
-            lines.append(f"{p.name} ({p.description}): {p.help}{param_facts(p)}".rstrip())
+            lines.append(f"{p.name} ({p.description}): {p.help}{param_facts(p)}{alias_text(p)}".rstrip())
         for r in self.results:
             lines.append(f"{r.name} ({r.description}): {r.help}".rstrip())
         return "\n".join(lines)
+
+
+def alias_text(p: Param) -> str:
+    """' Formerly WINDOW_DIAMETER_M (still accepted).' for the help texts."""
+    return f" Formerly {', '.join(p.aliases)} (still accepted)." if p.aliases else ""
 
 
 def param_facts(p: Param) -> str:

@@ -26,7 +26,7 @@ def run(args: dict, feedback: Feedback) -> Result:
         feedback.progress(0.05, "height above ground")
         target = normalize(cloud)
         crs = cloud.crs
-    window = FixedWindow(diameter_m=args["WINDOW_DIAMETER_M"]) if args["WINDOW"] == "fixed" else VariableWindow()
+    window = FixedWindow(diameter_m=args["TOP_WINDOW_M"]) if args["WINDOW"] == "fixed" else VariableWindow()
     tops = find_tree_tops(
         target, window=window, min_height_m=args["MIN_HEIGHT_M"],
         progress=scaled(feedback.progress, 0.3, 1.0), cancelled=feedback.cancelled,
@@ -58,8 +58,9 @@ TREE_TOPS = Algorithm(
               labels=("Fixed diameter", "Grows with tree height"),
               help="variable (default): the window grows with height (1.5 m + 0.1 x height, 2–8 m), as "
                    "crowns of taller trees are wider; measured best on mixed stands (benchmarks/terrain.py). "
-                   "fixed: one circular window of WINDOW_DIAMETER_M for every tree."),
-        Param("WINDOW_DIAMETER_M", NUMBER, "Fixed window diameter (m)", default=3.0, minimum=0.5, maximum=50.0,
+                   "fixed: one circular window of TOP_WINDOW_M for every tree."),
+        Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", default=3.0, minimum=0.5, maximum=50.0,
+              aliases=("WINDOW_DIAMETER_M",),
               help="Diameter of the circular search window in metres; about the crown radius of "
                    "the smallest trees you want to find."),
         min_height_param(),

@@ -9,6 +9,7 @@ temporary layers and Graphical Modeler links alike.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from qgis.core import (
@@ -239,6 +240,12 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
     def initAlgorithm(self, config=None):  # noqa: N802
         for p in self.spec.params:
             self.addParameter(qgs_parameter(p))
+            for old in p.aliases:
+                # an earlier name, hidden and optional: a Modeler graph or script saved with it keeps its
+                # value (a graph passes a child only the values of names the algorithm defines)
+                q = qgs_parameter(dataclasses.replace(p, name=old, default=None, optional=True, aliases=()))
+                q.setFlags(q.flags() | QgsProcessingParameterDefinition.FlagHidden)
+                self.addParameter(q)
         for r in self.spec.results:
             cls = QgsProcessingOutputNumber if r.kind == S.NUMBER_RESULT else QgsProcessingOutputString
             self.addOutput(cls(r.name, r.description))
@@ -246,7 +253,7 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
     def _plain(self, parameters):
         """``parameters`` with enum values given as an option id or label turned into the option's index
         (qgis_process and Python callers may pass "ncut" or its label as the CLI does)."""
-        out = dict(parameters)
+        out = S.with_aliases(self.spec, parameters)
         for p in self.spec.params:
             value = out.get(p.name)
             if p.kind == S.ENUM and isinstance(value, str) and value.strip() and not value.strip().isdigit():

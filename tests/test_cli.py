@@ -70,7 +70,26 @@ def test_bad_input_gives_one_clear_message(tmp_path, sample_laz, case):
 
 
 def test_bad_parameter_value(tmp_path, sample_laz):
-    out = sylva("treetops", f"--INPUT={sample_laz}", "--WINDOW_DIAMETER_M=abc")
-    assert out.returncode == 1 and "WINDOW_DIAMETER_M" in out.stderr and "Traceback" not in out.stderr
+    out = sylva("treetops", f"--INPUT={sample_laz}", "--TOP_WINDOW_M=abc")
+    assert out.returncode == 1 and "TOP_WINDOW_M" in out.stderr and "Traceback" not in out.stderr
     out = sylva("treetops", f"--INPUT={sample_laz}", "--MIN_HEIGHT_M=-5")
     assert out.returncode == 1 and "outside" in out.stderr
+
+
+def test_an_earlier_parameter_name_is_still_accepted(tmp_path, sample_laz):
+    """treetops' WINDOW_DIAMETER_M is now TOP_WINDOW_M, the name segmenttrees and pipeline use; the earlier
+    name gives the same value (scripts and batch files written with it keep working)."""
+    counts = {}
+    for name, value in (("TOP_WINDOW_M", 6), ("WINDOW_DIAMETER_M", 6), ("TOP_WINDOW_M", 2)):
+        out = tmp_path / f"{name}{value}.gpkg"
+        r = sylva("treetops", f"--INPUT={sample_laz}", "--WINDOW=fixed", f"--{name}={value}", f"--OUTPUT={out}")
+        assert r.returncode == 0, r.stderr
+        counts[name, value] = _count(out)
+    assert counts["WINDOW_DIAMETER_M", 6] == counts["TOP_WINDOW_M", 6] < counts["TOP_WINDOW_M", 2]
+
+
+def _count(path):
+    from osgeo import ogr
+
+    ds = ogr.Open(str(path))
+    return ds.GetLayer(0).GetFeatureCount()

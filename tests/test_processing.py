@@ -20,7 +20,10 @@ def test_provider_lists_the_algorithms(sylva_provider):
     ids = {a.id() for a in QgsApplication.processingRegistry().providerById("sylva").algorithms()}
     assert {"sylva:canopyheightmodel", "sylva:treetops"} <= ids
     alg = QgsApplication.processingRegistry().algorithmById("sylva:treetops")
-    assert "WINDOW_DIAMETER_M" in alg.shortHelpString()
+    assert "TOP_WINDOW_M" in alg.shortHelpString()
+    # the earlier name is a hidden parameter, so graphs and scripts saved with it keep their value
+    from qgis.core import QgsProcessingParameterDefinition as Def
+    assert alg.parameterDefinition("WINDOW_DIAMETER_M").flags() & Def.FlagHidden
     assert alg.parameterDefinition("MIN_HEIGHT_M").defaultValue() == 2.0
 
 
