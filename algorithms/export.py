@@ -39,7 +39,7 @@ def run(args: dict, feedback: Feedback) -> Result:
                   f"{crs.name if crs is not None else 'none (local frame)'}")
     if args.get("TILES"):  # fail before writing anything else
         Georef(frame, default_origin(models)).require_geodetic(f"3D Tiles export to {args['TILES']}")
-    leaves = bool(args.get("LEAVES", True))
+    leaves = bool(args.get("INCLUDE_LEAVES", True))
     result = Result(values={"TREE_COUNT": len(models)})
     steps = [(name, args.get(name)) for name in ("GLB_FOLDER", "TILES", "CITYGML", "OBJ") if args.get(name)]
     for k, (name, target) in enumerate(steps):
@@ -58,7 +58,7 @@ def run(args: dict, feedback: Feedback) -> Result:
         result.files[name] = str(target)
         feedback.info(f"{name}: {target}")
     feedback.progress(0.92, "3D layer")
-    result.vectors["MODELS_3D"] = models_table(models, frame, leaves=bool(args.get("LEAVES_3D")))
+    result.vectors["MODELS_3D"] = models_table(models, frame, leaves=bool(args.get("INCLUDE_LEAVES_3D")))
     feedback.progress(0.96, "3D crowns")
     result.vectors["CROWNS_3D"] = model_crowns(models, frame)
     feedback.progress(1.0, "done")
@@ -102,15 +102,18 @@ EXPORT_MODELS = Algorithm(
     params=(
         Param("INPUT", FILE, "Tree models (GLB)", file_filter="glTF binary (*.glb);;All files (*)",
               help="The MODELS output of 'Reconstruct trees' (or a per-tree GLB of this algorithm)."),
-        Param("LEAVES", BOOLEAN, "Include leaves", default=True,
-              help="Leaf cards in the per-tree GLBs, the CityGML (lod2) and the OBJ; 3D Tiles always have them."),
+        Param("INCLUDE_LEAVES", BOOLEAN, "Include leaves", default=True, aliases=("LEAVES",),
+              help="The models' leaves (cards or needle clusters, as 'Reconstruct trees' grew them) in the "
+                   "per-tree GLBs, the CityGML (lod2) and the OBJ; 3D Tiles always have them. (LEAVES "
+                   "elsewhere chooses which leaves to grow.)"),
         Param("VERSION", ENUM, "CityGML version", options=CITYGML_VERSIONS, default="2.0",
               labels=("CityGML 2.0", "CityGML 3.0"),
               help="2.0: lod2Geometry (widest support); 3.0: lod2MultiSurface."),
         Param("IMPLICIT", BOOLEAN, "CityGML implicit geometry", default=False, advanced=True,
               help="Write lod2ImplicitRepresentation (a prototype in local metres, a reference point and a "
                    "transformation matrix) instead of explicit coordinates."),
-        Param("LEAVES_3D", BOOLEAN, "Leaves in the 3D layer", default=False, advanced=True,
+        Param("INCLUDE_LEAVES_3D", BOOLEAN, "Leaves in the 3D layer", default=False, advanced=True,
+              aliases=("LEAVES_3D",),
               help="Add the leaf cards to MODELS_3D as further triangles (many more faces)."),
         Param("GLB_FOLDER", FOLDER_OUT, "One GLB per tree (folder)", optional=True,
               help="tree_<id>.glb for every tree, its origin at the tree's base, with .prj and .origin.json."),

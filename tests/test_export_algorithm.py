@@ -389,3 +389,19 @@ def test_crown_hull_is_bounded_closed_and_keeps_the_top():
         d, _ = cKDTree(xyz[labels == [7, 9][k]]).query(coords)
         assert d.max() < 1e-9                                          # corners are the tree's own points
     np.testing.assert_allclose(table.extent, shapely.total_bounds(shapely.from_wkb(table.geometries)))
+
+
+def test_include_leaves_keeps_its_earlier_name(modelled, tmp_path):
+    """exportmodels' INCLUDE_LEAVES was LEAVES (a yes/no here, the leaf kind elsewhere): scripts written with
+    the earlier name still write the same files."""
+    glb, _, _ = modelled
+    objs = {}
+    for key, flag in (("new", "--INCLUDE_LEAVES=false"), ("old", "--LEAVES=false"), ("default", None)):
+        obj = tmp_path / key / "trees.obj"
+        obj.parent.mkdir()
+        run = subprocess.run([sys.executable, "-m", "sylva.cli", "--quiet", "exportmodels", f"--INPUT={glb}",
+                              f"--OBJ={obj}", *([flag] if flag else [])], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        objs[key] = obj.read_text()
+    assert objs["old"] == objs["new"]
+    assert len(objs["new"].splitlines()) < len(objs["default"].splitlines())

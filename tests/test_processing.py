@@ -44,7 +44,7 @@ def test_treetops_layer_opens_with_fields(sylva_provider, sample_laz, tmp_path):
     from qgis.core import QgsVectorLayer, QgsWkbTypes
 
     out = str(tmp_path / "tops.gpkg")
-    result = run("sylva:treetops", {"INPUT": str(sample_laz), "WINDOW": 0, "WINDOW_DIAMETER_M": 3.0,
+    result = run("sylva:treetops", {"INPUT": str(sample_laz), "WINDOW": 0, "TOP_WINDOW_M": 3.0,
                                     "MIN_HEIGHT_M": 2.0, "OUTPUT": out})
     layer = QgsVectorLayer(result["OUTPUT"], "tops", "ogr")
     assert layer.isValid()
@@ -57,7 +57,10 @@ def test_treetops_layer_opens_with_fields(sylva_provider, sample_laz, tmp_path):
 
 
 def test_two_step_model_chm_then_tops(sylva_provider, sample_laz, tmp_path):
-    """A Graphical Modeler graph: CHM -> tree tops, linked by the CHM output; saved and reloaded."""
+    """A Graphical Modeler graph: CHM -> tree tops, linked by the CHM output; saved and reloaded.
+
+    The graph sets the top window by its earlier name, WINDOW_DIAMETER_M, to 6 m (not the default): the
+    value must arrive (as many tops as TOP_WINDOW_M=6 gives, fewer than 3 m)."""
     from qgis.core import (QgsProcessingContext, QgsProcessingFeedback, QgsProcessingModelAlgorithm,
                            QgsProcessingModelChildAlgorithm, QgsProcessingModelChildParameterSource as Src,
                            QgsProcessingModelOutput, QgsProcessingModelParameter,
@@ -75,7 +78,7 @@ def test_two_step_model_chm_then_tops(sylva_provider, sample_laz, tmp_path):
     tops.setChildId("tops")
     tops.addParameterSources("INPUT", [Src.fromChildOutput("chm", "OUTPUT")])
     tops.addParameterSources("WINDOW", [Src.fromStaticValue(0)])
-    tops.addParameterSources("WINDOW_DIAMETER_M", [Src.fromStaticValue(3.0)])
+    tops.addParameterSources("WINDOW_DIAMETER_M", [Src.fromStaticValue(6.0)])
     tops.addParameterSources("MIN_HEIGHT_M", [Src.fromStaticValue(2.0)])
     output = QgsProcessingModelOutput("tree_tops")
     output.setChildId("tops")
@@ -96,6 +99,11 @@ def test_two_step_model_chm_then_tops(sylva_provider, sample_laz, tmp_path):
                             feedback=QgsProcessingFeedback())
     layer = QgsVectorLayer(result["tops:tree_tops"], "tops", "ogr")
     assert layer.isValid() and layer.featureCount() > 20
+    chm = run("sylva:canopyheightmodel", {"INPUT": str(sample_laz), "RESOLUTION_M": 1.0, "PIT_FREE": True,
+                                          "OUTPUT": str(tmp_path / "chm.tif")})["OUTPUT"]
+    count = {w: run("sylva:treetops", {"INPUT": chm, "WINDOW": 0, "TOP_WINDOW_M": w, "MIN_HEIGHT_M": 2.0,
+                                       "OUTPUT": str(tmp_path / f"tops_{w}.gpkg")})["TREE_COUNT"] for w in (3.0, 6.0)}
+    assert layer.featureCount() == count[6.0] < count[3.0]
 
 
 @pytest.mark.parametrize("case", ["missing", "not_las", "truncated", "empty", "no_crs"])
