@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.forest import LEAVES
+from ..core.geometry import DEFAULT_LOD
 from ..core.reconstruct.sketch import SketchTree
 from .common import build_method, lod_param, method_params
 from .spec import (ENUM, FILE_OUT, LEAF_LABELS, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
@@ -76,7 +77,7 @@ def _location(table, feedback: Feedback):
     return np.array([x, y, z], dtype=np.float64), crs
 
 
-def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = 1, seed: int = 0):
+def build_geometry(skeleton, height_m: float, leaves: str = "auto", lod: int = DEFAULT_LOD, seed: int = 0):
     """Radii (pipe model scaled to an allometric DBH), wood mesh and leaves of a sketched tree.
 
     Returns (skeleton with radii, wood mesh, leaf mesh or None, record dict).
