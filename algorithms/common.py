@@ -5,7 +5,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..core.errors import CRSError, InputError
-from .spec import CRS, FILE, Feedback, Param
+from .spec import CRS, FILE, INTEGER, NUMBER, STRING, Feedback, Param
 
 POINT_CLOUD_FILTER = "LAS/LAZ point clouds (*.las *.laz);;Text point clouds (*.xyz *.txt *.csv);;All files (*)"
 RASTER_SUFFIXES = (".tif", ".tiff")
@@ -23,7 +23,6 @@ def input_cloud(help_extra: str = "") -> Param:
 def min_height_param() -> Param:
     """MIN_HEIGHT_M of every algorithm that finds trees, its default :data:`sylva.core.tops.MIN_TREE_HEIGHT_M`."""
     from ..core.tops import MIN_TREE_HEIGHT_M
-    from .spec import NUMBER
 
     return Param("MIN_HEIGHT_M", NUMBER, "Minimum tree height (m)", default=MIN_TREE_HEIGHT_M, minimum=0.0,
                  maximum=200.0, help="Tops lower than this above the ground are not trees (shrubs, cars, noise); "
@@ -33,7 +32,6 @@ def min_height_param() -> Param:
 def lod_param(advanced: bool = False) -> Param:
     """LOD of every algorithm that builds models, its default :data:`sylva.core.geometry.DEFAULT_LOD`."""
     from ..core.geometry import DEFAULT_LOD
-    from .spec import INTEGER
 
     return Param("LOD", INTEGER, "Level of detail (0–2)", default=DEFAULT_LOD, minimum=0, maximum=2,
                  advanced=advanced,
@@ -357,3 +355,58 @@ class OutputGuard:
                             shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
             except OSError:
                 pass
+
+
+# --------------------------------------------------------------------------- runs over tiles
+
+def tiles_input() -> Param:
+    """INPUT of the algorithms that run over a survey's tiles (each with its neighbours' buffer)."""
+    return Param("INPUT", FILE, "Tiles (.vpc, LAS/LAZ or folder)",
+                 file_filter="Virtual point clouds (*.vpc);;LAS/LAZ (*.las *.laz);;All files (*)",
+                 help="A QGIS virtual point cloud (.vpc), one LAS/LAZ file, or a folder of LAS/LAZ tiles; "
+                      "several separated by ';'.")
+
+
+def buffer_param() -> Param:
+    return Param("BUFFER_M", NUMBER, "Neighbour buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
+                 help="Width of the ring of neighbouring points read around each tile; wider than the "
+                      "widest crown.")
+
+
+def workers_param() -> Param:
+    return Param("WORKERS", INTEGER, "Parallel workers (processes)", default=1, minimum=1, maximum=256,
+                 help="Local processes working on tiles at once (each needs the memory of one tile and "
+                      "its buffer).")
+
+
+def scheduler_param() -> Param:
+    return Param("SCHEDULER", STRING, "Dask scheduler address", optional=True, advanced=True,
+                 help="e.g. tcp://10.0.0.5:8786 (tcp:// or tls:// only): send the tiles to a dask.distributed "
+                      "cluster instead of local workers (needs 'pip install dask[distributed]'; workers must see "
+                      "the same paths). A scheduler is trusted code execution: dask exchanges tasks and results "
+                      "pickled, so a scheduler or worker you do not control can run any code on this machine; "
+                      "never take this address from a project file you did not write.")
+
+
+def scheduler_of(args: dict):
+    """The SCHEDULER address, or None for local workers."""
+    return (args.get("SCHEDULER") or "").strip() or None
+
+
+def tiles_and_folder(args: dict):
+    """(the INPUT paths, separated by ';'; OUTPUT_FOLDER created if missing), or one line naming what is wrong."""
+    from ..core.errors import disk_error
+
+    inputs = [p.strip() for p in str(args.get("INPUT") or "").split(";") if p.strip()]
+    if not inputs:
+        raise InputError("INPUT: give a .vpc virtual point cloud, a folder of LAS/LAZ tiles or LAS/LAZ files")
+    out = args.get("OUTPUT_FOLDER")
+    if not out:
+        raise InputError("OUTPUT_FOLDER: choose an output folder")
+    if Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"OUTPUT_FOLDER={out}: is a file, not a folder")
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise disk_error(out, err) from None
+    return inputs, out

@@ -2,16 +2,13 @@
 from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
-from .common import crs_override, lod_param, min_height_param
+from .common import (buffer_param, crs_override, lod_param, min_height_param, scheduler_of, scheduler_param,
+                     tiles_and_folder, tiles_input, workers_param)
 from .segment import SEGMENTATION_LABELS
-from .spec import (BOOLEAN, ENUM, FILE, FOLDER_OUT, INTEGER, LEAF_LABELS, NUMBER, NUMBER_RESULT, STRING,
+from .spec import (BOOLEAN, ENUM, FOLDER_OUT, LEAF_LABELS, NUMBER, NUMBER_RESULT,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)
 
 SEGMENTATION = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
-
-
-def _inputs(text: str) -> list:
-    return [p.strip() for p in str(text or "").split(";") if p.strip()]
 
 
 def run(args: dict, feedback: Feedback) -> Result:
@@ -21,20 +18,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.errors import InputError
     from ..core.pipeline import PipelineOptions
 
-    inputs = _inputs(args["INPUT"])
-    if not inputs:
-        raise InputError("INPUT: give a .vpc virtual point cloud, a folder of LAS/LAZ tiles or LAS/LAZ files")
-    out = args["OUTPUT_FOLDER"]
-    if not out:
-        raise InputError("OUTPUT_FOLDER: choose an output folder")
-    if Path(out).exists() and not Path(out).is_dir():
-        raise InputError(f"OUTPUT_FOLDER={out}: is a file, not a folder")
-    try:
-        Path(out).mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        from ..core.errors import disk_error
-
-        raise disk_error(out, err) from None
+    inputs, out = tiles_and_folder(args)
     from .segment import segmentation_method
 
     options = PipelineOptions(
@@ -42,7 +26,7 @@ def run(args: dict, feedback: Feedback) -> Result:
         reconstruct=bool(args["RECONSTRUCT"]), lod=int(args["LOD"]), leaves=args["LEAVES"],
         billboards=bool(args["BILLBOARDS"]), chunk_size_m=float(args["CHUNK_SIZE_M"]),
         crs=args.get("CRS") or None)
-    scheduler = (args.get("SCHEDULER") or "").strip() or None
+    scheduler = scheduler_of(args)
     report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
                          resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)
     for line in report.summary().splitlines():
@@ -81,13 +65,8 @@ PIPELINE = Algorithm(
         "tile that fails is retried once and reported without stopping the run."
     ),
     params=(
-        Param("INPUT", FILE, "Tiles (.vpc, LAS/LAZ or folder)",
-              file_filter="Virtual point clouds (*.vpc);;LAS/LAZ (*.las *.laz);;All files (*)",
-              help="A QGIS virtual point cloud (.vpc), one LAS/LAZ file, or a folder of LAS/LAZ tiles; "
-                   "several separated by ';'."),
-        Param("BUFFER_M", NUMBER, "Neighbour buffer (m)", default=15.0, minimum=0.0, maximum=200.0,
-              help="Width of the ring of neighbouring points read around each tile; wider than the "
-                   "widest crown."),
+        tiles_input(),
+        buffer_param(),
         Param("CHUNK_SIZE_M", NUMBER, "Chunk size (m)", default=0.0, minimum=0.0, maximum=100000.0, advanced=True,
               help="Cut files wider than this into square chunks of this size, each processed as a tile with "
                    "its buffer (as lidR's opt_chunk_size): a large merged block or a dense flight in one file "
@@ -114,15 +93,8 @@ PIPELINE = Algorithm(
               help="Also build each tree's textured billboard (Zhou et al. 2013: six quads, textured from the "
                    "points' RGB when the tiles have colour) and draw it in the 3D Tiles tileset's far tile "
                    "instead of the coarse wood; about 0.07 s per tree."),
-        Param("WORKERS", INTEGER, "Parallel workers (processes)", default=1, minimum=1, maximum=256,
-              help="Local processes working on tiles at once (each needs the memory of one tile and "
-                   "its buffer)."),
-        Param("SCHEDULER", STRING, "Dask scheduler address", optional=True, advanced=True,
-              help="e.g. tcp://10.0.0.5:8786 (tcp:// or tls:// only): send the tiles to a dask.distributed "
-                   "cluster instead of local workers (needs 'pip install dask[distributed]'; workers must see "
-                   "the same paths). A scheduler is trusted code execution: dask exchanges tasks and results "
-                   "pickled, so a scheduler or worker you do not control can run any code on this machine; "
-                   "never take this address from a project file you did not write."),
+        workers_param(),
+        scheduler_param(),
         Param("RESUME", BOOLEAN, "Skip completed tiles", default=True,
               help="Reuse tiles whose outputs are complete for the same input files and parameters."),
         crs_override(),

@@ -76,7 +76,8 @@ def make_jobs(tiles: Sequence[Tile], out_dir, options: PipelineOptions) -> List[
 FULL_DISK_BYTES = 16 * 2**20
 
 
-def _failure(job: TileJob, err: BaseException, out: Path) -> dict:
+def failure_record(job: TileJob, err: BaseException, out: Path) -> dict:
+    """A failed job's report row: name, path, status, a one-line reason (a full disk named as such), attempts."""
     if isinstance(err, SylvaError):
         reason = str(err)
     elif isinstance(err, OSError) and err.errno is not None:
@@ -409,7 +410,7 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
                     raise err
                 if job.attempt < 2:
                     return replace(job, attempt=job.attempt + 1)
-                failures.append(_failure(job, err, out))
+                failures.append(failure_record(job, err, out))
                 remove_tile_outputs(out, job.name)   # no stale LAZ/GLB of an earlier run stays beside the report
                 merger.ready(job.name, None)
             else:

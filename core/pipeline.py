@@ -278,6 +278,10 @@ def part_paths(out_dir, name: str) -> dict:
 #: dtm.vrt and chm.vrt (the DTM is what QGIS's 3D view can use as its terrain).
 DTM_PIXEL_M = 1.0
 CHM_PIXEL_M = 0.5
+#: Further points (metres) around a tile for a pit-free CHM: twice the freeze distance (max_edge_m 1.5 of
+#: :func:`sylva.core.terrain.canopy_height_model`), so the triangles over the tile's cells are those of the
+#: whole survey (measured: the sample cut into 2 x 2 tiles gives the CHM of the whole, cell for cell).
+PIT_FREE_PAD_M = 3.0
 
 
 def _fill_gaps(grid: np.ndarray, passes: int = 2) -> np.ndarray:
@@ -295,7 +299,8 @@ def _fill_gaps(grid: np.ndarray, passes: int = 2) -> np.ndarray:
     return out
 
 
-def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
+def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict, dtm_pixel_m: float = DTM_PIXEL_M,
+                       chm_pixel_m: float = CHM_PIXEL_M, pit_free: bool = False) -> dict:
     """The tile's DTM (CRS vertical units, like the models' z) and CHM (metres above ground) GeoTIFFs
     over its own bounds, from its buffered, normalised cloud (Sylva, not in a paper).
 
@@ -305,7 +310,7 @@ def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
     few cm; no second triangulation), cells without points filled from the
     nearest one, on a grid aligned on multiples of the pixel, so neighbouring
     tiles abut; the CHM is the highest first return per cell
-    (:func:`sylva.core.terrain.canopy_height_model`, not pit-free: it is cheap)
+    (:func:`sylva.core.terrain.canopy_height_model`; ``pit_free`` False by default: it is cheap)
     pasted on the same kind of grid, its empty cells given the highest of their
     neighbours twice (:func:`_fill_gaps`).  Returns {"dtm": path, "chm": path}.
     """
@@ -315,13 +320,13 @@ def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
     from .terrain import canopy_height_model
 
     hm, vm = work.units.horizontal_m, work.units.vertical_m
-    pad = 2 * CHM_PIXEL_M / hm
+    pad = (2 * max(chm_pixel_m, dtm_pixel_m / 2) + (PIT_FREE_PAD_M if pit_free else 0.0)) / hm
     xmin, ymin, xmax, ymax = job.bounds
     near = ((work.xyz[:, 0] >= xmin - pad) & (work.xyz[:, 0] <= xmax + pad)
             & (work.xyz[:, 1] >= ymin - pad) & (work.xyz[:, 1] <= ymax + pad))
     # DTM: every point's ground elevation (z minus its height: the TIN under it) averaged per cell, which
     # is the TIN at the cell (linear within it); cells without points take their nearest cell's value.
-    dtm = aligned_raster(job.bounds, DTM_PIXEL_M / hm, work.crs)
+    dtm = aligned_raster(job.bounds, dtm_pixel_m / hm, work.crs)
     xyz = work.xyz[near]
     ground = xyz[:, 2] - np.asarray(work.attrs["height"], dtype=np.float64)[near] / vm
     row, col = dtm.index_of(xyz[:, 0], xyz[:, 1])
@@ -336,10 +341,10 @@ def write_tile_rasters(work: PointCloud, job: TileJob, paths: dict) -> dict:
             _, (ri, ci) = ndimage.distance_transform_edt(empty, return_indices=True)
             mean = mean[ri, ci]
         dtm.data[:] = mean
-    chm = aligned_raster(job.bounds, CHM_PIXEL_M / hm, work.crs)
+    chm = aligned_raster(job.bounds, chm_pixel_m / hm, work.crs)
     if near.any():
         try:
-            paste(chm, canopy_height_model(work.subset(near), CHM_PIXEL_M, pit_free=False))
+            paste(chm, canopy_height_model(work.subset(near), chm_pixel_m, pit_free=pit_free))
         except EmptyInputError:  # no first return near the tile: its CHM stays no data
             pass
         chm.data[:] = _fill_gaps(chm.data)

@@ -18,7 +18,7 @@ def test_provider_lists_the_algorithms(sylva_provider):
     from qgis.core import QgsApplication
 
     ids = {a.id() for a in QgsApplication.processingRegistry().providerById("sylva").algorithms()}
-    assert {"sylva:canopyheightmodel", "sylva:treetops"} <= ids
+    assert {"sylva:canopyheightmodel", "sylva:terraintiles", "sylva:treetops"} <= ids
     alg = QgsApplication.processingRegistry().algorithmById("sylva:treetops")
     assert "TOP_WINDOW_M" in alg.shortHelpString()
     # the earlier name is a hidden parameter, so graphs and scripts saved with it keep their value

@@ -1,0 +1,57 @@
+"""sylva:terraintiles: the DTM and CHM of a survey's tiles, each read with its neighbours' buffer."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from badfiles import corner_tiles
+from sylva.core.terrain_tiles import TerrainOptions, run_terrain_tiles
+
+
+def _grid(path):
+    from osgeo import gdal
+
+    ds = gdal.Open(str(path))
+    return ds.GetGeoTransform(), ds.ReadAsArray().astype(np.float64), ds.GetSpatialRef().GetAuthorityCode(None)
+
+
+@pytest.fixture(scope="module")
+def runs(sample_laz, tmp_path_factory):
+    """The sample's 80 m corner as 2 x 2 tiles of 40 m and as one tile, each run through run_terrain_tiles."""
+    root = tmp_path_factory.mktemp("terrain")
+    corner_tiles(root / "tiles", sample_laz, size_m=40.0, n=2)
+    corner_tiles(root / "whole", sample_laz, size_m=80.0, n=1)
+    out = {}
+    for name, workers in (("tiles", 2), ("whole", 1)):
+        out[name] = run_terrain_tiles([str(root / name)], root / f"out_{name}", TerrainOptions(), workers=workers)
+    return root, out
+
+
+@pytest.mark.parametrize("kind", ["dtm", "chm"])
+def test_tiles_give_the_rasters_of_the_whole(runs, kind):
+    root, out = runs
+    assert len(out["tiles"].tiles) == 4 and not out["tiles"].failures
+    assert sorted(p.name for p in (root / "out_tiles" / kind).glob("*.tif")) == [
+        "c_0_0.tif", "c_0_1.tif", "c_1_0.tif", "c_1_1.tif"]
+    ga, a, epsg = _grid(getattr(out["tiles"], kind))
+    gb, b, _ = _grid(getattr(out["whole"], kind))
+    assert epsg == "32632" and ga == gb and a.shape == b.shape
+    assert ga[1] == {"dtm": 1.0, "chm": 0.5}[kind]
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.95
+    # no seam: every cell both have is the same (buffered reads, grids aligned on the pixel)
+    np.testing.assert_allclose(a[both], b[both], atol=1e-3)
+    if kind == "chm":
+        assert 10.0 < np.nanmax(a) < 60.0                      # metres above ground, not elevations
+    assert not (root / "out_tiles" / "parts").exists()        # the halos were scratch
+
+
+def test_a_folder_without_tiles_is_one_line(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    run = subprocess.run([sys.executable, "-m", "sylva.cli", "terraintiles", f"--INPUT={empty}",
+                          f"--OUTPUT_FOLDER={tmp_path / 'out'}"], capture_output=True, text=True)
+    assert run.returncode != 0
+    assert "Traceback" not in run.stderr and str(empty) in run.stderr
+    assert not list((tmp_path / "out").glob("*.vrt"))
