@@ -35,9 +35,9 @@ import numpy as np
 
 from .cloud import PointCloud
 from .errors import InputError
-from .geometry import (_branch_set, _continuations, _forest, _forest_polylines, _forest_wood, _local_parent, _norm3,
-                       _simplify_forest, _split_branch_set, _tip_counts, _tree_branches, _trusted_skeleton,
-                       DEFAULT_LOD, pipe_model_radii)
+from .geometry import (DEFAULT_LOD, build_branch_set, continuations, forest_polylines, forest_wood, join_forest,
+                       localise_parents, norm3, pipe_model_radii, simplify_forest, split_branch_set, tip_counts,
+                       tree_branches, trusted_skeleton)
 from .jit import njit
 from .leaves import LeafCards, NeedleClusters, _forest_tip_sections, _grow_leaves, grow_leaves
 from .measure import TreeMetrics, estimate_dbhs
@@ -227,7 +227,7 @@ def _forest_dbh_radii(parent: np.ndarray, off: np.ndarray, trees, dbhs, options:
         if not (np.isfinite(stem_r) and stem_r > 0):
             raise InputError(f"skeleton: trunk_radius_m must be > 0 m, got {stem_r}")
     tree = np.repeat(np.arange(nt), np.diff(off))
-    radii = tip[tree] * _tip_counts(parent) ** (1.0 / 2.0)     # pipe_model_radii, exponent 2
+    radii = tip[tree] * tip_counts(parent) ** (1.0 / 2.0)      # pipe_model_radii, exponent 2
     radii *= (trunk / radii[off[:-1]])[tree]                    # the root is node 0 of every tree
     return radii
 
@@ -347,19 +347,19 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions, fitt
     if not work:
         return [], None
     raw = [w[3].skeleton for w in work]
-    nodes, parent, off = _forest(raw)
+    nodes, parent, off = join_forest(raw)
     radius = np.concatenate([sk.radius for sk in raw])
     added = np.concatenate([sk.is_added for sk in raw])
     if options.simplify_m > 0:
-        nodes, parent, radius, added, off = _simplify_forest(nodes, parent, radius, added, off, options.simplify_m)
+        nodes, parent, radius, added, off = simplify_forest(nodes, parent, radius, added, off, options.simplify_m)
     radii, dbhs = _forest_radii(parent, radius, off, work, options)
     shifted = nodes - np.repeat(nodes[off[:-1]], np.diff(off), axis=0)   # relative to each root (node 0)
     # the three branch decompositions (geometry.branches): of the skeleton with radii (records, QSM,
     # skeleton table), of the shifted skeleton with radii (wood mesh) and without radii (leaves)
-    bs_a = _branch_set(parent, _continuations(nodes, parent, radii))
-    bs_b = _branch_set(parent, _continuations(shifted, parent, radii))
-    bs_c = _branch_set(parent, _continuations(shifted, parent, None))
-    boff = _tree_branches(bs_a, off)
+    bs_a = build_branch_set(parent, continuations(nodes, parent, radii))
+    bs_b = build_branch_set(parent, continuations(shifted, parent, radii))
+    bs_c = build_branch_set(parent, continuations(shifted, parent, None))
+    boff = tree_branches(bs_a, off)
     bounds = pt_off.tolist()
     top_z = [pts[a:b, 2].max() for a, b in zip(bounds[:-1], bounds[1:])]
     qsms = skeleton_qsms(nodes, parent, radii, bs_a, off, boff, [w[0] for w in work], [w[2] for w in work],
@@ -371,11 +371,11 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions, fitt
         kinds = ["needles" if c else "broadleaf" for c in conical.tolist()]
         # a wood model fitted to a dense scan gets no leaf cards unless they are asked for
         kinds = ["none" if t in fitted else kd for t, kd in enumerate(kinds)]
-    local_parent = _local_parent(parent, off)
+    local_parent = localise_parents(parent, off)
     bases = cloud.from_local(nodes[off[:-1]]).tolist()
     nb = off.tolist()
     out = []
-    for t, (w, (dbh, source), qsm, bset) in enumerate(zip(work, dbhs, qsms, _split_branch_set(bs_a, off, boff))):
+    for t, (w, (dbh, source), qsm, bset) in enumerate(zip(work, dbhs, qsms, split_branch_set(bs_a, off, boff))):
         a, b = nb[t], nb[t + 1]
         qsm_method = "skeleton_edges"
         if w[4] is not None:
@@ -383,8 +383,8 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions, fitt
             qsm.dbh_m, qsm.dbh_source = float(dbh), source
         record = _record(w, dbh, source, bases[t], len(bset) - 1, lengths[t], volumes[t], kinds[t], qsm, qsm_method,
                          bounds[t + 1] - bounds[t] < options.min_points)
-        out.append(ModelledTree(w[0], nodes[a].copy(), _trusted_skeleton(nodes[a:b], local_parent[a:b], radii[a:b],
-                                                                         added[a:b]), None, None, record, qsm, bset))
+        out.append(ModelledTree(w[0], nodes[a].copy(), trusted_skeleton(nodes[a:b], local_parent[a:b], radii[a:b],
+                                                                        added[a:b]), None, None, record, qsm, bset))
     return out, (shifted, radii, off, bs_b, bs_c)
 
 
@@ -427,7 +427,7 @@ def _forest_measures(nodes, parent, radii, bs, off, branch_off):
     nt = len(off) - 1
     child = np.flatnonzero(parent >= 0)
     par = parent[child]
-    seg = _norm3(nodes[child] - nodes[par])
+    seg = norm3(nodes[child] - nodes[par])
     r2 = radii[child]
     r1 = np.where(bs.continuation[par] == child, radii[par], r2)
     frusta = np.pi * seg * (r1 * r1 + r1 * r2 + r2 * r2) / 3.0
@@ -488,8 +488,8 @@ def _mesh_and_leaf(out: List[ModelledTree], forest, options: ModelOptions, cance
         return
     shifted, radii, off, bs_mesh, bs_leaf = forest
     lod = options.lod
-    lines = _forest_polylines(shifted, radii, bs_mesh, _tree_branches(bs_mesh, off), lod)
-    leaf_boff = _tree_branches(bs_leaf, off)
+    lines = forest_polylines(shifted, radii, bs_mesh, tree_branches(bs_mesh, off), lod)
+    leaf_boff = tree_branches(bs_leaf, off)
     kinds = [t.record["leaves"] for t in out]
     seeds = [zlib.crc32(f"leaves-{t.tree_id}".encode()) for t in out]
     sections = {}
@@ -498,7 +498,7 @@ def _mesh_and_leaf(out: List[ModelledTree], forest, options: ModelOptions, cance
     cuts = np.r_[0, np.flatnonzero(np.diff(np.cumsum(sizes) // _BATCH_NODES)) + 1, len(out)]
     for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
         check(cancelled)
-        for t, wood in zip(out[a:b], _forest_wood(lines, a, b, lod)):
+        for t, wood in zip(out[a:b], forest_wood(lines, a, b, lod)):
             t.wood = wood
         for kind in sorted(set(kinds[a:b])):
             method = _leaf_method(kind, options)

@@ -36,7 +36,7 @@ from typing import Optional, Union
 import numpy as np
 
 from .errors import InputError
-from .geometry import _forest, _norm3, branches
+from .geometry import branches, join_forest, norm3
 from .jit import njit
 from .skeleton import Skeleton
 from .textures import leaf_aspect, leaf_texture, leaf_shape_name
@@ -398,7 +398,7 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
         rad_all.append(rad)
     if ntree == 0:
         return []
-    nodes_all, _, node_off = _forest(skeletons)
+    nodes_all, _, node_off = join_forest(skeletons)
     sect_all = np.concatenate(sects) + np.repeat(node_off[:-1], [len(x) for x in sects])[:, None]
     return _grow_leaves(nodes_all, np.concatenate(rad_all), sect_all, np.concatenate(tip_tree), node_off[:-1],
                         method, seeds)
@@ -429,7 +429,7 @@ def _grow_leaves(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip
     needles, per_tip, length_m, width_m, shape, ksegs = _leaf_sizes(method)
     base_az, node_rank = phyllotaxis_azimuths(method.pattern, per_tip)
     pts = nodes[sect_all]                                        # (t, K+1, 3)
-    seglen = _norm3(pts[:, 1:] - pts[:, :-1])                    # (t, K)
+    seglen = norm3(pts[:, 1:] - pts[:, :-1])                     # (t, K)
     total = seglen.sum(axis=1)
     live = np.flatnonzero(total > 1e-9)
     tip_tree = tip_tree[live]

@@ -469,7 +469,7 @@ def skeleton_qsms(nodes: np.ndarray, parent: np.ndarray, radius: np.ndarray, bra
     is fitted here).  Per-tree sums are numpy sums over each tree's slice, so every value is the
     one of the per-tree functions, bit for bit (Sylva, not in the paper).
     """
-    from .geometry import _norm3
+    from .geometry import norm3
 
     bs = branch_set
     node_off = np.asarray(node_off, dtype=np.int64)
@@ -489,7 +489,7 @@ def skeleton_qsms(nodes: np.ndarray, parent: np.ndarray, radius: np.ndarray, bra
     pcyl = cyl_of[par]
     start = nodes[par]
     vec = nodes[node] - start
-    length = _norm3(vec)
+    length = norm3(vec)
     axis = np.where(length[:, None] > 1e-12, vec / np.maximum(length, 1e-12)[:, None], np.array([0, 0, 1.0]))
     branch = bs.node_branch[node]
     rad = radius[node]

@@ -33,7 +33,8 @@ from sylva.core.export import ExportFrame, TreeModel, write_glb, write_tileset
 from sylva.core.export.georef import Georef
 from sylva.core.export.gltf import glb_bytes
 from sylva.core.export.tiles3d import coarse_error
-from sylva.core.geometry import LevelOfDetail, _forest, _lod, _radii_or_default
+from sylva.core.geometry import LevelOfDetail, join_forest, radii_or_default
+from sylva.core.geometry.mesh import _lod
 from sylva.core.io.gpkg import write_gpkg
 from sylva.core.qsm import cylinders_from_skeleton, measure_qsm
 from sylva.core.reconstruct.model import Reconstruction
@@ -424,9 +425,9 @@ def test_norm3_is_numpys_row_norm():
     v[:10] = [[0.0, -0.0, 0.0], [-0.0, -0.0, -0.0], [np.inf, 1, 1], [np.nan, 0, 0], [1e-320, 0, 0],
               [1e200, 1e200, 1e200], [-3.0, 4.0, 0.0], [0, 0, -1.0], [np.nan, np.inf, 0], [-np.inf, 0, 0]]
     with np.errstate(over="ignore", invalid="ignore"):
-        assert_same(G._norm3(v), np.linalg.norm(v, axis=1))
+        assert_same(G.norm3(v), np.linalg.norm(v, axis=1))
         w = v[:4995].reshape(-1, 3, 3, 3)[..., 0, :]            # strided (t, K, 3), as the leaves use it
-        assert_same(G._norm3(w), np.linalg.norm(w, axis=-1))
+        assert_same(G.norm3(w), np.linalg.norm(w, axis=-1))
 
 
 def _tip_radii(sk):
@@ -435,10 +436,10 @@ def _tip_radii(sk):
 
 def test_skeleton_qsms_are_the_per_tree_measure_qsm():
     sks = [_with_pipe_radii(sk) for sk in _skeleton_zoo(8)] + tiny_skeletons()
-    nodes, parent, off = _forest(sks)
+    nodes, parent, off = join_forest(sks)
     radii = np.concatenate([sk.radius for sk in sks])
-    bs = G._branch_set(parent, G._continuations(nodes, parent, radii))
-    boff = G._tree_branches(bs, off)
+    bs = G.build_branch_set(parent, G.continuations(nodes, parent, radii))
+    boff = G.tree_branches(bs, off)
     rng = np.random.default_rng(9)
     base = rng.normal(0, 0.5, len(sks)).tolist()
     xyz = [sk.nodes + rng.normal(0, 0.3, sk.nodes.shape) for sk in sks]
@@ -446,7 +447,7 @@ def test_skeleton_qsms_are_the_per_tree_measure_qsm():
     src = ["measured" if k % 2 else "allometric" for k in range(len(sks))]
     top = [x[:, 2].max() for x in xyz]
     got = skeleton_qsms_of(nodes, parent, radii, bs, off, boff, base, top, dbh, src)
-    for k, (sk, q, bset) in enumerate(zip(sks, got, G._split_branch_set(bs, off, boff))):
+    for k, (sk, q, bset) in enumerate(zip(sks, got, G.split_branch_set(bs, off, boff))):
         cyl, bpar = cylinders_from_skeleton(sk, branch_set=bset)
         want = measure_qsm(cyl, bpar, xyz[k], base_z=base[k], tree_id=k)
         want.dbh_m, want.dbh_source = float(dbh[k]), src[k]
@@ -514,7 +515,7 @@ def test_branches_batch_is_one_tree_at_a_time_on_the_zoo():
 def test_tube_batch_is_one_tree_at_a_time(lod):
     sks = _skeleton_zoo(6)
     radii = [None if k % 3 == 0 else _tip_radii(sk) * (1 + k % 4) for k, sk in enumerate(sks)]
-    bsets = [None if k % 2 else G.branches(sk, _radii_or_default(sk, r)) for k, (sk, r) in enumerate(zip(sks, radii))]
+    bsets = [None if k % 2 else G.branches(sk, radii_or_default(sk, r)) for k, (sk, r) in enumerate(zip(sks, radii))]
     got = G.tree_mesh_arrays_batch(sks, lod, radii, bsets)
     assert_same(got, [G.tree_mesh_arrays_batch([sk], lod, [r], [b])[0] for sk, r, b in zip(sks, radii, bsets)])
     if _lod(lod).min_radius_m >= 0.02:

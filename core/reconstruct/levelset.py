@@ -751,7 +751,7 @@ def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m
     on average where the circle's is, not inside it).  Tubes thinner than ``pointed_m`` (largest radius) start at a
     point, their centre line's first point, not a ring (a twig's base, inside its parent: a cone to the
     twig's second ring).  Sylva: the polygon is finer where it is seen."""
-    from ..geometry import _dedupe, _tube_batch
+    from ..geometry import dedupe, tube_batch
 
     vs, fs, nv = [], [], 0
     rmax = np.array([float(np.max(r)) if len(r) else 0.0 for r in radii])
@@ -777,10 +777,10 @@ def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m
         if match:
             rad = rad / float(mean_radius_factor(s))
         off = np.r_[0, np.cumsum([len(curves[k]) for k in sel])]
-        pts, rad, off, _ = _dedupe(pts, rad, off)
+        pts, rad, off, _ = dedupe(pts, rad, off)
         if len(pts) == 0:
             continue
-        v, f, _ = _tube_batch(pts, rad, off, s, False)
+        v, f, _ = tube_batch(pts, rad, off, s, False)
         n = len(pts)
         lines = np.flatnonzero(np.diff(off) >= 2)
         if len(lines):
