@@ -19,7 +19,7 @@ GROUND = ("auto", "never", "always")
 
 def run_normalize(args: dict, feedback: Feedback) -> Result:
     from ..core.io.las import write_las
-    from ..core.terrain import CSF, SMRF, normalize
+    from ..core.terrain import CSF, SMRF, height_as_z, normalize
 
     cloud = load_cloud(args, feedback)
     method = SMRF() if args["GROUND_METHOD"] == "smrf" else CSF()
@@ -33,13 +33,7 @@ def run_normalize(args: dict, feedback: Feedback) -> Result:
     feedback.progress(0.8, "writing")
     height = out.attrs["height"]
     if args["REPLACE_Z"]:
-        xyz = out.xyz.copy()
-        xyz[:, 2] = height / out.units.vertical_m
-        attrs = {k: v for k, v in out.attrs.items() if k != "height"}
-        from dataclasses import replace
-
-        out = replace(out, xyz=xyz, attrs=attrs)
-        extra = {"elevation": cloud.xyz[:, 2].astype(np.float64)}
+        out, extra = height_as_z(out, height, cloud.xyz[:, 2])
     else:
         extra = {}
     write_las(args["OUTPUT"], out, extra=extra, cancelled=feedback.cancelled)

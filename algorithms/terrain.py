@@ -68,7 +68,7 @@ def run_tiles(args: dict, feedback: Feedback) -> Result:
     inputs, out = tiles_and_folder(args)
     options = TerrainOptions(buffer_m=float(args["BUFFER_M"]), dtm_pixel_m=float(args["DTM_RESOLUTION_M"]),
                              chm_pixel_m=float(args["RESOLUTION_M"]), pit_free=bool(args["PIT_FREE"]),
-                             crs=args.get("CRS") or None)
+                             normalized=bool(args["NORMALIZED_TILES"]), crs=args.get("CRS") or None)
     run = run_terrain_tiles(inputs, out, options, workers=max(1, int(args["WORKERS"])),
                             scheduler=scheduler_of(args), progress=feedback.progress, cancelled=feedback.cancelled)
     for failure in run.failures:
@@ -93,7 +93,7 @@ TERRAIN_TILES = Algorithm(
         "edges. Writes dtm/<tile>.tif and chm/<tile>.tif over each tile's own extent on a grid aligned on "
         "the pixel, and dtm.vrt and chm.vrt, virtual mosaics QGIS opens as one layer (the DTM can be the "
         "3D view's terrain). Tiles run in parallel processes or on a dask cluster; a tile that fails is "
-        "reported and the run goes on."
+        "reported and the run goes on. Optionally also writes every tile height-normalised."
     ),
     params=(
         tiles_input(),
@@ -102,11 +102,15 @@ TERRAIN_TILES = Algorithm(
         Param("DTM_RESOLUTION_M", NUMBER, "DTM cell size (m)", default=1.0, minimum=0.1, maximum=100.0,
               help="Size of a terrain cell in metres (each cell: the ground triangulation under its points)."),
         PIT_FREE,
+        Param("NORMALIZED_TILES", BOOLEAN, "Also write normalised tiles", default=False,
+              help="normalized/<tile>.laz: every point of each tile with its height above the ground as Z "
+                   "and its elevation in the extra dimension 'elevation' (as 'Normalise heights' writes one "
+                   "file and lidR's normalize_height), the ground triangulated with the neighbours' buffer."),
         workers_param(),
         scheduler_param(),
         crs_override(),
         Param("OUTPUT_FOLDER", FOLDER_OUT, "Output folder",
-              help="Receives dtm/, chm/, dtm.vrt and chm.vrt."),
+              help="Receives dtm/, chm/, dtm.vrt and chm.vrt (and normalized/)."),
     ),
     run=run_tiles,
     results=(

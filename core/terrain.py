@@ -759,6 +759,18 @@ def normalize(cloud: PointCloud, method: str = "tin", classify: Optional[GroundM
 
 
 
+def height_as_z(cloud: PointCloud, height: np.ndarray, elevation: np.ndarray):
+    """(``cloud`` whose z is ``height`` (metres above ground, in the CRS's vertical units) and without a
+    ``height`` attribute, the extra dimensions {"elevation": ``elevation``}): what lidR's
+    ``normalize_height`` writes, the source elevation kept beside it."""
+    from dataclasses import replace
+
+    xyz = cloud.xyz.copy()
+    xyz[:, 2] = np.asarray(height, dtype=np.float64) / cloud.units.vertical_m
+    attrs = {k: v for k, v in cloud.attrs.items() if k != "height"}
+    return replace(cloud, xyz=xyz, attrs=attrs), {"elevation": np.asarray(elevation, dtype=np.float64)}
+
+
 def heights_above_ground(cloud: PointCloud) -> np.ndarray:
     """The cloud's ``height`` attribute, or its heights from :func:`normalize` when it has none."""
     h = cloud.attr("height")

@@ -19,6 +19,9 @@ Output folder::
 
     dtm/<tile>.tif, chm/<tile>.tif   per tile (DTM in the CRS's vertical units, CHM in metres)
     dtm.vrt, chm.vrt                 GDAL virtual mosaics of them
+    normalized/<tile>.laz            with ``normalized``: the tile's points, z = height above ground
+                                     (extra dimension ``elevation``: the source z), as sylva:normalizeheight
+                                     and lidR's normalize_height write a file, here with the buffer's ground
 """
 from __future__ import annotations
 
@@ -38,13 +41,15 @@ class TerrainOptions:
     """``buffer_m`` neighbours' ring read around each tile; ``ground_cell_m`` ground points are thinned
     to the lowest per cell of this size before the TIN; ``dtm_pixel_m`` / ``chm_pixel_m`` the rasters'
     pixels (metres); ``pit_free`` the Khosravipour et al. (2014) CHM instead of the highest first return
-    per cell; ``crs`` overrides the files' CRS; ``chunk_size`` points read at a time from a neighbour."""
+    per cell; ``normalized`` also writes each tile's points with z = height above ground; ``crs``
+    overrides the files' CRS; ``chunk_size`` points read at a time from a neighbour."""
 
     buffer_m: float = 15.0
     ground_cell_m: float = 0.5
     dtm_pixel_m: float = 1.0
     chm_pixel_m: float = 0.5
     pit_free: bool = True
+    normalized: bool = False
     crs: Optional[str] = None
     chunk_size: int = 1_000_000
 
@@ -73,14 +78,44 @@ def terrain_tile(job, progress: Progress = None, cancelled: CancelCheck = None) 
     own, cloud, warnings = read_buffered(job, progress, cancelled)
     check(cancelled)
     report(progress, 0.4, f"{job.name}: height above ground")
-    work = normalize(cloud.subset(~noise_mask(cloud)), classify=SMRF(), cell_m=opts.ground_cell_m,
+    noise = noise_mask(cloud)
+    work = normalize(cloud.subset(~noise), classify=SMRF(), cell_m=opts.ground_cell_m,
                      tin_radius_m=opts.buffer_m / 2)
     check(cancelled)
     report(progress, 0.7, f"{job.name}: rasters")
     files = write_tile_rasters(work, job, part_paths(job.out_dir, job.name), dtm_pixel_m=opts.dtm_pixel_m,
                                chm_pixel_m=opts.chm_pixel_m, pit_free=opts.pit_free)
+    if opts.normalized:
+        check(cancelled)
+        report(progress, 0.85, f"{job.name}: normalised points")
+        files["normalized"] = str(_write_normalized(own, cloud, noise, work, job))
     return {"name": job.name, "points": int(len(own)), "buffer_points": int(len(cloud) - len(own)),
             "warnings": warnings, "files": files}
+
+
+def _write_normalized(own, cloud, noise, work, job) -> Path:
+    """normalized/<tile>.laz: the tile's own points (file order, noise too) with z = height above the ground
+    of its buffered cloud (the ground points ``work`` found, noise never among them)."""
+    import numpy as np
+
+    from .io.las import write_las
+    from .terrain import GROUND_CLASS, ground_mask, height_above_ground, height_as_z
+
+    opts, n = job.options, len(own)
+    ground = np.zeros(len(cloud), dtype=bool)
+    ground[np.flatnonzero(~noise)[ground_mask(work)]] = True
+    if ground.any():
+        height = height_above_ground(cloud, ground=ground, cell_m=opts.ground_cell_m,
+                                     tin_radius_m=opts.buffer_m / 2)[:n]
+    else:                                   # an already normalised tile: its z is the height
+        height = own.xyz[:, 2] * own.units.vertical_m
+    cls = own.attr("classification")
+    cls = np.ones(n, dtype=np.uint8) if cls is None else np.array(cls, copy=True)
+    cls[ground[:n]] = GROUND_CLASS
+    out, extra = height_as_z(own.with_attrs(classification=cls), height, own.xyz[:, 2])
+    path = Path(job.out_dir) / "normalized" / f"{job.name}.laz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_las(path, out, extra=extra)
 
 
 def run_terrain_tiles(inputs, out_dir, options: TerrainOptions = TerrainOptions(), workers: int = 1,

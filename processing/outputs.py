@@ -91,14 +91,15 @@ def _add(context, uri: str, name: str, hint, post) -> None:
 
 
 def load_on_completion(algorithm_id: str, files: dict, values: dict, context) -> list:
-    """Have Processing load ``sylva:pipeline``'s layers at the end of the run; returns their sources.
+    """Have Processing load the layers of ``sylva:pipeline`` (forest.gpkg's, dtm.vrt, chm.vrt) or of
+    ``sylva:terraintiles`` (dtm.vrt, chm.vrt) at the end of the run; returns their sources.
 
     ``files``/``values``: the run's Result (OUTPUT_FOLDER, DTM, CHM, GEOPACKAGE).
     Only the desktop acts on the list (the dialog, the batch dialog and
     ``processing.runAndLoadResults`` call Processing's handleAlgorithmResults);
     ``qgis_process`` and ``processing.run`` ignore it.
     """
-    if algorithm_id != "pipeline" or context.project() is None:
+    if algorithm_id not in ("pipeline", "terraintiles") or context.project() is None:
         return []
     added = []
     gpkg = values.get("GEOPACKAGE")

@@ -36,6 +36,7 @@ EXPECTED_LAYERS = {
     "sylva:reconstructtrees": ["Skeletons", "Trees table"],
     "sylva:treefromsketch": ["Skeleton", "Tree"],
     "sylva:exportmodels": ["3D models layer"],
+    "sylva:terraintiles": ["DTM (terrain)", "CHM (canopy height)"],
 }
 
 
@@ -78,7 +79,8 @@ def desktop_inputs(tmp_path_factory, sample_laz):
     assert cli.main(["--quiet", "reconstructtrees", f"--INPUT={corner}", f"--MODELS={glb}",
                      f"--SKELETONS={work / 's.gpkg'}", f"--TREES={work / 't.gpkg'}"]) == 0
     inputs = {f"sylva:{a}": {"INPUT": str(sample_laz)}
-              for a in ("canopyheightmodel", "treetops", "normalizeheight", "segmenttrees", "pipeline")}
+              for a in ("canopyheightmodel", "treetops", "normalizeheight", "segmenttrees", "pipeline",
+                        "terraintiles")}
     inputs.update({"sylva:reconstructtrees": {"INPUT": str(corner)}, "sylva:billboards": {"INPUT": str(corner)},
                    "sylva:exportmodels": {"INPUT": str(glb)}, "sylva:treefromsketch": _sketch_layers(work)})
     return work, inputs
@@ -163,7 +165,7 @@ def desktop_report(request, desktop_inputs):
 
 
 ALGORITHMS = ("canopyheightmodel", "treetops", "normalizeheight", "segmenttrees", "reconstructtrees",
-              "exportmodels", "pipeline", "treefromsketch", "billboards")
+              "exportmodels", "pipeline", "treefromsketch", "billboards", "terraintiles")
 
 
 @pytest.mark.parametrize("name", ALGORITHMS)

@@ -18,13 +18,15 @@ def _grid(path):
 
 @pytest.fixture(scope="module")
 def runs(sample_laz, tmp_path_factory):
-    """The sample's 80 m corner as 2 x 2 tiles of 40 m and as one tile, each run through run_terrain_tiles."""
+    """The sample's 80 m corner as 2 x 2 tiles of 40 m and as one tile, each run through run_terrain_tiles
+    (normalised tiles too)."""
     root = tmp_path_factory.mktemp("terrain")
     corner_tiles(root / "tiles", sample_laz, size_m=40.0, n=2)
     corner_tiles(root / "whole", sample_laz, size_m=80.0, n=1)
     out = {}
     for name, workers in (("tiles", 2), ("whole", 1)):
-        out[name] = run_terrain_tiles([str(root / name)], root / f"out_{name}", TerrainOptions(), workers=workers)
+        out[name] = run_terrain_tiles([str(root / name)], root / f"out_{name}", TerrainOptions(normalized=True),
+                                      workers=workers)
     return root, out
 
 
@@ -45,6 +47,27 @@ def test_tiles_give_the_rasters_of_the_whole(runs, kind):
     if kind == "chm":
         assert 10.0 < np.nanmax(a) < 60.0                      # metres above ground, not elevations
     assert not (root / "out_tiles" / "parts").exists()        # the halos were scratch
+
+
+def test_normalised_tiles_are_the_whole_normalised(runs):
+    """Every point of every tile, z = its height above the ground: the same as the untiled run's (the
+    ground triangulated with the buffer), the source elevation kept as 'elevation'."""
+    import laspy
+
+    root, _ = runs
+
+    def points(folder):
+        las = [laspy.read(str(p)) for p in sorted((root / folder / "normalized").glob("*.laz"))]
+        return np.concatenate([np.column_stack([f.x, f.y, f["elevation"], f.z]) for f in las])
+
+    source = [laspy.read(str(p)) for p in sorted((root / "tiles").glob("*.laz"))]
+    tiled, whole = points("out_tiles"), points("out_whole")
+    assert len(tiled) == len(whole) == sum(len(f.points) for f in source)
+    src = np.concatenate([np.column_stack([f.x, f.y, f.z]) for f in source])
+    order = lambda a: a[np.lexsort((a[:, 2], a[:, 1], a[:, 0]))]
+    np.testing.assert_array_equal(order(tiled)[:, :3], order(src))          # every point, elevation kept
+    np.testing.assert_allclose(order(tiled)[:, 3], order(whole)[:, 3], atol=1e-3)
+    assert np.percentile(tiled[:, 3], 99) > 10.0 and abs(np.median(tiled[tiled[:, 3] < 0.5, 3])) < 0.2
 
 
 def test_a_folder_without_tiles_is_one_line(tmp_path):
