@@ -26,7 +26,9 @@ Prints, for every method side by side:
    labels, the median 2-D convex-hull crown IoU (skipped when absent), and a
    picture of Sylva's crowns beside lidR's over the CHM; a row 'ncut+chm'
    grows Dalponte's CHM regions from the tops NormalizedCut keeps (which
-   part of the disagreement is crown boundaries, which is tops);
+   part of the disagreement is crown boundaries, which is tops), a row
+   'chm 4 m' is ChmRegionGrowing with a 4 m top window (what lidR's labels
+   look like: a CHM method);
    and the same detection scores as in 1. on the plugin's shipped sample
    (resources/sample/sample.laz against sample_trees.csv);
 3. throughput (points/s through the whole segment_trees verb: tops,
@@ -274,7 +276,7 @@ def _chm_from_kept_tops(cloud):
 def real_files(out_dir):
     """MixedConifer agreement with lidR; share of small trees and a crown picture on every real file."""
     from sylva.core.io.las import read_las
-    from sylva.core.segment import segment_trees
+    from sylva.core.segment import ChmRegionGrowing, segment_trees
     from sylva.core.segment.tile import segment_tile
 
     M = _metrics()
@@ -292,6 +294,7 @@ def real_files(out_dir):
         runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
         runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(path))), len(cloud))))
         runs.append(("ncut+chm", lambda: _chm_from_kept_tops(cloud)))
+        runs.append(("chm 4 m", lambda: segment_trees(cloud, ChmRegionGrowing(top_window_m=4.0))))
         for name, run in runs:
             t0 = time.perf_counter()
             labels = run()
