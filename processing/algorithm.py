@@ -22,7 +22,6 @@ from qgis.core import (
     QgsProcessing,
     QgsProcessingAlgorithm,
     QgsProcessingException,
-    QgsProcessingLayerPostProcessorInterface,
     QgsProcessingOutputNumber,
     QgsProcessingOutputString,
     QgsProcessingParameterBoolean,
@@ -46,8 +45,6 @@ from ..algorithms import spec as S
 from ..core.errors import SylvaError
 from ..plugin import deps
 
-#: The .qml styles that Param.style names.
-STYLES = Path(__file__).resolve().parents[1] / "resources" / "styles"
 #: The HTML help page of each algorithm (resources/help/ID.html, made by sylva.algorithms.helppages).
 HELP = Path(__file__).resolve().parents[1] / "resources" / "help"
 
@@ -437,7 +434,9 @@ class SylvaAlgorithm(QgsProcessingAlgorithm):
     def _style_on_load(style, dest_id, context):
         """Have QGIS apply ``resources/styles/<style>`` when it loads the output at the end of the run."""
         if style and context.willLoadLayerOnCompletion(dest_id):
-            context.layerToLoadOnCompletionDetails(dest_id).setPostProcessor(StyleOnLoad.get(style))
+            from .outputs import StyledOutput
+
+            context.layerToLoadOnCompletionDetails(dest_id).setPostProcessor(StyledOutput.get(style))
 
 
 def _layer_of(value, path: str, table):
@@ -452,34 +451,6 @@ def _layer_of(value, path: str, table):
         value.sink = QgsProperty.fromValue(uri)
         return value
     return uri
-
-
-class StyleOnLoad(QgsProcessingLayerPostProcessorInterface):
-    """Loads a .qml of resources/styles into a layer Processing has just loaded (QGIS >= 3.2).
-
-    ``setPostProcessor`` transfers ownership to QGIS, which deletes the post-processor once the layer is
-    loaded: every output gets a new instance (a shared one was gone by the second run of a desktop session:
-    "wrapped C/C++ object of type StyleOnLoad has been deleted"). ``_alive`` keeps the Python side of each
-    instance referenced until QGIS has used it.
-    """
-
-    _alive: list = []
-
-    def __init__(self, qml: str):
-        super().__init__()
-        self.qml = qml
-
-    @classmethod
-    def get(cls, style: str) -> "StyleOnLoad":
-        instance = cls(str(STYLES / style))
-        cls._alive = cls._alive[-200:] + [instance]
-        return instance
-
-    def postProcessLayer(self, layer, context, feedback):  # noqa: N802
-        message, ok = layer.loadNamedStyle(self.qml)
-        if not ok and feedback is not None:
-            feedback.reportError(f"style {self.qml} not applied: {message}", fatalError=False)
-        layer.triggerRepaint()
 
 
 def _destination(parameters, name) -> str:

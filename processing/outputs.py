@@ -48,10 +48,14 @@ RUN_RASTERS = (
 class StyledOutput(QgsProcessingLayerPostProcessorInterface):
     """Applies a .qml to a layer Processing has just loaded; may hide it or move it to the bottom.
 
-    QGIS does not own post-processors: one instance per kind lives in ``_instances`` for good.
+    Used for every layer Sylva's algorithms have QGIS load (sinks with a style, and the folder outputs
+    here).  ``setPostProcessor`` transfers ownership to QGIS, which deletes the post-processor once the
+    layer is loaded: each layer gets an instance of its own (one shared by a second run in a desktop
+    session failed with "wrapped C/C++ object ... has been deleted"), and ``_instances`` keeps the Python
+    side of the last ones referenced until QGIS has used them.
     """
 
-    _instances: dict = {}
+    _instances: list = []
 
     def __init__(self, qml, visible: bool, bottom: bool, terrain: bool = False):
         super().__init__()
@@ -59,10 +63,10 @@ class StyledOutput(QgsProcessingLayerPostProcessorInterface):
 
     @classmethod
     def get(cls, style, visible: bool = True, bottom: bool = False, terrain: bool = False) -> "StyledOutput":
-        key = (style, visible, bottom, terrain)
-        if key not in cls._instances:
-            cls._instances[key] = cls(str(STYLES / style) if style else None, visible, bottom, terrain)
-        return cls._instances[key]
+        """A new post-processor for one layer (kept alive in ``_instances``)."""
+        post = cls(str(STYLES / style) if style else None, visible, bottom, terrain)
+        cls._instances = cls._instances[-200:] + [post]
+        return post
 
     def postProcessLayer(self, layer, context, feedback):  # noqa: N802
         if self.qml:
