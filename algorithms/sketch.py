@@ -66,7 +66,7 @@ def _location(table, feedback: Feedback):
         raise InputError(f"LOCATION ({table.name}): the layer holds no point")
     if len(pts) > 1:
         feedback.warn(f"LOCATION ({table.name}) holds {len(pts)} points; the tree stands at the first one")
-    x, y, z = shapely.get_coordinates(pts[0], include_z=True)[0]   # not .z / .has_z: see core.reconstruct.sketch._xy
+    x, y, z = shapely.get_coordinates(pts[0], include_z=True)[0]   # not .z / .has_z: see core.reconstruct.sketch.strokes.vertices_xy
     z = z if np.isfinite(z) else 0.0
     crs = table.crs
     if crs is not None and crs.is_geographic:
