@@ -1,4 +1,4 @@
-"""Cost of the damage checks of core/io/las.py (issue 17) next to the read they guard.
+"""Cost of the damage checks of core/io/las/checks.py (issue 17) next to the read they guard.
 
     python benchmarks/damage_checks.py [FILE.laz ...]     (default: the bundled sample)
 
@@ -33,8 +33,8 @@ def main(paths):
             header = r.header
             array = r.read().points.array
 
-        bounds = best(lambda: L._check_bounds(path, array, header))
-        size = best(lambda: L._check_size(path, header))
+        bounds = best(lambda: L.check_bounds(path, array, header))
+        size = best(lambda: L.check_size(path, header))
         read = best(lambda: L.read_las(path), 3)
         print(f"{path.name}: {len(array):,} points; bounds check {bounds:.2f} ms, size + chunk table "
               f"{size:.2f} ms, read_las {read:.0f} ms (checks {100 * (bounds + size) / read:.2f} % of the read; "

@@ -68,11 +68,11 @@ def run_serial(jobs, work, on_done, cancelled: CancelCheck = None, progress_of=l
 def pool_context():
     import multiprocessing as mp
 
-    from .io import las
+    from .io.las import reading
 
     # fork is fast, but not safe once QGIS (Qt threads) is running in this process, nor once lazrs's
-    # thread pool has (io.las.PARALLEL_LAZ_USED: forked workers would wait for its threads): spawn then
-    if sys.platform.startswith("linux") and "qgis.core" not in sys.modules and not las.PARALLEL_LAZ_USED:
+    # thread pool has (io.las.reading.PARALLEL_LAZ_USED: forked workers would wait for its threads): spawn then
+    if sys.platform.startswith("linux") and "qgis.core" not in sys.modules and not reading.PARALLEL_LAZ_USED:
         return mp.get_context("fork")
     ctx = mp.get_context("spawn")
     exe = Path(sys.exec_prefix) / ("python.exe" if os.name == "nt" else "bin/python3")

@@ -710,7 +710,7 @@ def test_a_lazrs_panic_at_the_end_of_the_data_is_the_end():
     PanicException, a BaseException; it means the same end of the data, while Ctrl-C still propagates."""
     from types import SimpleNamespace
 
-    from sylva.core.io.las import _check_no_more_points
+    from sylva.core.io.las import check_no_more_points
 
     class PanicException(BaseException):
         pass
@@ -722,7 +722,7 @@ def test_a_lazrs_panic_at_the_end_of_the_data_is_the_end():
             decompress_many=decompress_many)))
 
     header = SimpleNamespace(are_points_compressed=True, point_format=SimpleNamespace(size=30), point_count=5)
-    _check_no_more_points(reader(PanicException("slice index starts at 3 but ends at 2")), "x.laz", header)
-    _check_no_more_points(reader(RuntimeError("end")), "x.laz", header)
+    check_no_more_points(reader(PanicException("slice index starts at 3 but ends at 2")), "x.laz", header)
+    check_no_more_points(reader(RuntimeError("end")), "x.laz", header)
     with pytest.raises(KeyboardInterrupt):
-        _check_no_more_points(reader(KeyboardInterrupt()), "x.laz", header)
+        check_no_more_points(reader(KeyboardInterrupt()), "x.laz", header)
