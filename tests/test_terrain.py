@@ -324,7 +324,7 @@ def test_tin_walk_finds_the_triangles_qhull_finds():
     Delaunay.find_simplex gives (or one sharing the point, on an edge), with
     the barycentric coordinates that reproduce it; outside the hull it says -1."""
     from scipy.spatial import Delaunay
-    from sylva.core.terrain import _locate
+    from sylva.core.terrain.interpolation import _locate
 
     rng = np.random.default_rng(8)
     xy = rng.uniform(0, 100, size=(3000, 2))

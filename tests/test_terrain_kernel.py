@@ -13,6 +13,8 @@ from sylva.core import terrain
 from sylva.core.cloud import PointCloud
 from sylva.core.jit import njit
 from sylva.core.terrain import SMRF
+from sylva.core.terrain import ground as TG
+from sylva.core.terrain import interpolation as TI
 
 
 # --- references: the implementations the kernels replaced ------------------------------
@@ -81,7 +83,7 @@ def reference_locate(tri, query, max_steps=500):
         found = tri.find_simplex(query[lost])
         simplex[lost] = found
         ok = found >= 0
-        bary[lost[ok]] = terrain._barycentric(tri, found[ok], query[lost[ok]])
+        bary[lost[ok]] = TI._barycentric(tri, found[ok], query[lost[ok]])
     return simplex, bary
 
 
@@ -127,7 +129,7 @@ def reference_ground_elevation(loc, mask, query, cell_m, k=10, power=2.0):
     out = reference_tin_interpolate(g[:, :2], g[:, 2], query)
     outside = ~np.isfinite(out)
     if outside.any():
-        out[outside] = terrain._idw(tree, g[:, 2], query[outside], k, power)
+        out[outside] = terrain.idw(tree, g[:, 2], query[outside], k, power)
     return out
 
 
@@ -135,7 +137,7 @@ def reference_progressive_opening(surface, radii, thresholds):
     flagged = np.zeros(surface.shape, dtype=bool)
     last = surface
     for radius, threshold in zip(radii, thresholds):
-        opened = ndimage.grey_opening(last, footprint=terrain._disk(int(radius)), mode="nearest")
+        opened = ndimage.grey_opening(last, footprint=TG._disk(int(radius)), mode="nearest")
         flagged |= (last - opened) > threshold
         last = opened
     return flagged
@@ -182,10 +184,10 @@ def test_spatial_order_is_the_lexsort(case):
           "same": np.full((100, 2), 3.25),
           "line": np.column_stack([np.arange(5000.0), np.arange(5000.0) * 1e-13]),  # far too many cells
           "two": np.array([[1.0, 2.0], [0.5, 2.0]])}[case]
-    got = terrain._spatial_order(xy)
+    got = TI._spatial_order(xy)
     assert same(got, reference_spatial_order(xy))
     if case == "line":
-        assert len(terrain._serpentine_sort(np.ascontiguousarray(xy), 4 * len(xy) + 1024)) == 0
+        assert len(TI._serpentine_sort(np.ascontiguousarray(xy), 4 * len(xy) + 1024)) == 0
 
 
 @pytest.mark.parametrize("cell_m", [0.5, 1.0, 0.0])
@@ -194,13 +196,13 @@ def test_lowest_per_cell_is_the_lexsort(cell_m):
     g = np.round(rng.uniform([-30, -20, 100], [70, 80, 102], (30000, 3)), 1)   # ties in z and x, y
     g[::97, 2] = np.nan
     g[::89, 2] = -0.0 * g[::89, 2]                                             # -0.0 ties with 0.0
-    assert same(g[terrain._lowest_per_cell(g, cell_m)], reference_thin(g, cell_m))
+    assert same(g[terrain.lowest_per_cell(g, cell_m)], reference_thin(g, cell_m))
 
 
 def test_lowest_per_cell_sparse_extent_sorts():
     g = np.array([[0.0, 0.0, 5.0], [1e7, 3.0, 1.0], [0.2, 0.1, 4.0], [1e7, 3.2, 0.5]])
-    assert len(terrain._lowest_per_cell_kernel(g, 0.5, 4 * len(g) + 1024)) == 0
-    assert same(g[terrain._lowest_per_cell(g, 0.5)], reference_thin(g, 0.5))
+    assert len(TI._lowest_per_cell_kernel(g, 0.5, 4 * len(g) + 1024)) == 0
+    assert same(g[terrain.lowest_per_cell(g, 0.5)], reference_thin(g, 0.5))
 
 
 # --- point location -------------------------------------------------------------------------
@@ -217,15 +219,15 @@ def test_lost_queries_clear_of_edges_get_find_simplex_answers():
     tri, _ = _tri()
     rng = np.random.default_rng(4)
     q = np.vstack([rng.uniform(tri.min_bound, tri.max_bound, (3000, 2)), tri.max_bound + [[1.0, 2.0]]])
-    simplex, bary = terrain._locate(tri, q, max_steps=3)
+    simplex, bary = TI._locate(tri, q, max_steps=3)
     ref_s, ref_b = reference_locate(tri, q, max_steps=3)
-    order = terrain._spatial_order(q)
-    main, _, _ = terrain._walk(np.ascontiguousarray(tri.points), terrain._int32(tri.simplices),
-                               terrain._int32(tri.neighbors), q, order, 3)
+    order = TI._spatial_order(q)
+    main, _, _ = TI._walk(np.ascontiguousarray(tri.points), TI._int32(tri.simplices),
+                          TI._int32(tri.neighbors), q, order, 3)
     lost = order[main[order] == -2]
     assert len(lost) > 1000 and (ref_s[lost] == -1).sum() > 5
     s2, b2 = ref_s.copy(), ref_b.copy()
-    assert terrain._settle_lost(tri, q, lost, s2, b2, None)          # every lost query is clear
+    assert TI._settle_lost(tri, q, lost, s2, b2, None)          # every lost query is clear
     assert same(simplex, ref_s) and same(bary, ref_b)
 
 
@@ -238,14 +240,14 @@ def test_lost_queries_on_vertices_and_edges(max_steps):
     values = g[reference_spatial_order(g[:, :2]), 2]
     rng = np.random.default_rng(6)
     q = queries_reaching_every_case(tri, rng, 3000)
-    simplex, bary = terrain._locate(tri, q, max_steps=max_steps)
+    simplex, bary = TI._locate(tri, q, max_steps=max_steps)
     ref_s, ref_b = reference_locate(tri, q, max_steps=max_steps)
     assert same(simplex, ref_s) and same(bary, ref_b)
-    s, b = terrain._locate(tri, q, max_steps=max_steps, at_vertex=values != 0)
+    s, b = TI._locate(tri, q, max_steps=max_steps, at_vertex=values != 0)
     inside = ref_s >= 0
     assert same(s >= 0, inside)
     ref_v = (values[tri.simplices[ref_s[inside]]] * ref_b[inside]).sum(axis=1)
-    got_v = terrain._tin_values(values, terrain._int32(tri.simplices), s, b)[inside]
+    got_v = TI._tin_values(values, TI._int32(tri.simplices), s, b)[inside]
     assert same(got_v, ref_v)
 
 
@@ -254,9 +256,9 @@ def test_vertex_rule_needs_a_value_other_than_zero():
     q = tri.points[:200]
     order = np.arange(len(q))
     s, b = np.full(len(q), -2, dtype=np.int64), np.zeros((len(q), 3))
-    assert not terrain._settle_lost(tri, q, order, s.copy(), b.copy(), None)
-    assert not terrain._settle_lost(tri, q, order, s.copy(), b.copy(), np.zeros(len(tri.points), bool))
-    assert terrain._settle_lost(tri, q, order, s, b, np.ones(len(tri.points), bool))
+    assert not TI._settle_lost(tri, q, order, s.copy(), b.copy(), None)
+    assert not TI._settle_lost(tri, q, order, s.copy(), b.copy(), np.zeros(len(tri.points), bool))
+    assert TI._settle_lost(tri, q, order, s, b, np.ones(len(tri.points), bool))
     assert (s >= 0).all() and np.isin(b, [0.0, 1.0]).all() and (b.sum(axis=1) == 1.0).all()
 
 
@@ -274,7 +276,7 @@ def test_tin_interpolate_matches_the_reference(kind, max_edge):
         values = np.round(rng.normal(200.0, 3.0, len(xy)), 2)
     q = np.vstack([rng.uniform(xy.min(axis=0) - 2, xy.max(axis=0) + 2, (20000, 2)), xy,
                    np.round(rng.uniform(xy.min(axis=0), xy.max(axis=0), (5000, 2)))])
-    got = terrain._tin_interpolate(xy, values, q, max_edge=max_edge)
+    got = terrain.tin_interpolate(xy, values, q, max_edge=max_edge)
     assert same(got, reference_tin_interpolate(xy, values, q, max_edge=max_edge))
     assert np.isnan(got).any() and np.isfinite(got).mean() > 0.2
 
@@ -284,13 +286,13 @@ def test_ground_elevation_on_a_tile_sized_ground(monkeypatch):
     point): the first queries' walks from triangle 0 are lost and settled, heights are
     the reference's bit for bit."""
     settled = []
-    real = terrain._settle_lost
+    real = TI._settle_lost
 
     def spy(*args):
         settled.append(real(*args))
         return settled[-1]
 
-    monkeypatch.setattr(terrain, "_settle_lost", spy)
+    monkeypatch.setattr(TI, "_settle_lost", spy)
     rng = np.random.default_rng(12)
     ground = ground_like(60_000, 7)
     canopy = np.column_stack([rng.uniform(-3, 153, (30_000, 2)), rng.uniform(300, 340, 30_000)])
@@ -314,10 +316,10 @@ def test_disk_filter_is_ndimage(shape):
     signed = np.round(rng.normal(size=shape), 1)                  # ties, and -0.0
     g = signed + 0.0                                              # ties, no -0.0
     for r in [0, 1, 2, 3, 5, 8, 13, 18, 30]:
-        fp = terrain._disk(r)
-        assert same(terrain._disk_filter(g, r, False), ndimage.grey_erosion(g, footprint=fp, mode="nearest"))
-        assert same(terrain._disk_filter(g, r, True), ndimage.grey_dilation(g, footprint=fp, mode="nearest"))
-        assert np.array_equal(terrain._disk_filter(signed, r, False),
+        fp = TG._disk(r)
+        assert same(TG._disk_filter(g, r, False), ndimage.grey_erosion(g, footprint=fp, mode="nearest"))
+        assert same(TG._disk_filter(g, r, True), ndimage.grey_dilation(g, footprint=fp, mode="nearest"))
+        assert np.array_equal(TG._disk_filter(signed, r, False),
                               ndimage.grey_erosion(signed, footprint=fp, mode="nearest"))
 
 
@@ -326,10 +328,10 @@ def test_progressive_opening_is_the_reference():
     surface = np.round(300 + np.cumsum(rng.normal(0, 0.3, (120, 130)), axis=1)
                        + 25.0 * (rng.random((120, 130)) < 0.3), 2)
     radii = np.arange(1, 19)
-    flags = terrain._progressive_opening(surface, radii, 0.15 * radii)
+    flags = TG._progressive_opening(surface, radii, 0.15 * radii)
     assert same(flags, reference_progressive_opening(surface, radii, 0.15 * radii))
     assert 0.05 < flags.mean() < 0.95
-    low = terrain._progressive_opening(-surface, [1], [5.0])
+    low = TG._progressive_opening(-surface, [1], [5.0])
     assert same(low, reference_progressive_opening(-surface, [1], [5.0]))
 
 
@@ -340,8 +342,8 @@ def test_smrf_classification_is_unchanged(monkeypatch):
     scan = synth.simulate_scan(stand, synth.ScanSpec(pulse_density=10, seed=2))
     cloud = PointCloud(scan.cloud.xyz)                              # no classes: SMRF decides
     got = SMRF().classify(cloud)
-    monkeypatch.setattr(terrain, "_progressive_opening", reference_progressive_opening)
-    monkeypatch.setattr(terrain, "_tin_interpolate", reference_tin_interpolate)
+    monkeypatch.setattr(TG, "_progressive_opening", reference_progressive_opening)
+    monkeypatch.setattr(TG, "tin_interpolate", reference_tin_interpolate)
     assert same(got, SMRF().classify(cloud)) and 0.1 < got.mean() < 0.9
 
 
@@ -351,20 +353,20 @@ def test_kernels_run_as_python():
     """``SYLVA_NO_JIT``: the kernels are plain Python with the same results."""
     rng = np.random.default_rng(0)
     xy = np.round(rng.uniform(0, 20, (300, 2)), 1)
-    assert same(terrain._serpentine_sort.py_func(xy, 2000), terrain._serpentine_sort(xy, 2000))
+    assert same(TI._serpentine_sort.py_func(xy, 2000), TI._serpentine_sort(xy, 2000))
     g = np.column_stack([xy, np.round(rng.normal(size=300), 1)])
-    assert same(terrain._lowest_per_cell_kernel.py_func(g, 0.5, 2000), terrain._lowest_per_cell_kernel(g, 0.5, 2000))
+    assert same(TI._lowest_per_cell_kernel.py_func(g, 0.5, 2000), TI._lowest_per_cell_kernel(g, 0.5, 2000))
     grid = np.round(rng.normal(size=(12, 15)), 1)
     half = np.array([3, 2, 2, 0])
     for dilate in (False, True):
-        assert same(terrain._chord_filter.py_func(grid, half, dilate), terrain._chord_filter(grid, half, dilate))
-    tri = Delaunay(xy[terrain._spatial_order(xy)] + rng.normal(0, 1e-3, xy.shape))
+        assert same(TG._chord_filter.py_func(grid, half, dilate), TG._chord_filter(grid, half, dilate))
+    tri = Delaunay(xy[TI._spatial_order(xy)] + rng.normal(0, 1e-3, xy.shape))
     q = rng.uniform(-1, 21, (400, 2))
-    args = (np.ascontiguousarray(tri.points), terrain._int32(tri.simplices), terrain._int32(tri.neighbors),
-            q, terrain._spatial_order(q), 500)
-    for a, b in zip(terrain._walk.py_func(*args), terrain._walk(*args)):
+    args = (np.ascontiguousarray(tri.points), TI._int32(tri.simplices), TI._int32(tri.neighbors),
+            q, TI._spatial_order(q), 500)
+    for a, b in zip(TI._walk.py_func(*args), TI._walk(*args)):
         assert same(a, b)
-    s, b, _ = terrain._walk(*args)
+    s, b, _ = TI._walk(*args)
     v = rng.normal(size=len(tri.points))
-    simplices = terrain._int32(tri.simplices)
-    assert same(terrain._tin_values.py_func(v, simplices, s, b), terrain._tin_values(v, simplices, s, b))
+    simplices = TI._int32(tri.simplices)
+    assert same(TI._tin_values.py_func(v, simplices, s, b), TI._tin_values(v, simplices, s, b))
