@@ -73,7 +73,7 @@ class StyledOutput(QgsProcessingLayerPostProcessorInterface):
             message, ok = layer.loadNamedStyle(self.qml)
             if not ok and feedback is not None:
                 feedback.reportError(f"style {self.qml} not applied: {message}", fatalError=False)
-        project = context.project()
+        project = context.project() if context is not None else None
         node = project.layerTreeRoot().findLayer(layer.id()) if project is not None else None
         if node is not None:
             if self.bottom:   # rasters under the vectors, the DTM under the CHM (loaded after it)

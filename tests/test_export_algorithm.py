@@ -219,7 +219,7 @@ def test_qgis_output_loads_with_its_3d_style(sylva_provider, modelled):
     from qgis.core import (QgsApplication, QgsProcessingContext, QgsProcessingFeedback,
                            QgsProcessingOutputLayerDefinition, QgsProcessingUtils, QgsProject, QgsWkbTypes)
 
-    from sylva.processing.algorithm import StyleOnLoad
+    from sylva.processing.outputs import StyledOutput
 
     _init_3d()
     glb, models, _ = modelled
@@ -235,7 +235,7 @@ def test_qgis_output_loads_with_its_3d_style(sylva_provider, modelled):
     assert context.willLoadLayerOnCompletion(dest)
     details = context.layerToLoadOnCompletionDetails(dest)
     processor = details.postProcessor()
-    assert isinstance(processor, StyleOnLoad) and processor.qml.endswith("models_3d.qml")
+    assert isinstance(processor, StyledOutput) and processor.qml.endswith("models_3d.qml")
     layer = QgsProcessingUtils.mapLayerFromString(dest, context)
     assert layer.featureCount() == len(models) and layer.wkbType() == QgsWkbTypes.MultiPolygonZ
     assert layer.crs().authid() == "EPSG:32632"
@@ -277,10 +277,10 @@ def test_qgis_output_loads_with_its_3d_style(sylva_provider, modelled):
 def test_shipped_styles(qgis_app, qml, uri):
     from qgis.core import QgsExpression, QgsExpressionContext, QgsFeature, QgsGeometry, QgsVectorLayer
 
-    from sylva.processing.algorithm import StyleOnLoad
+    from sylva.processing.outputs import StyledOutput
 
     layer = QgsVectorLayer(uri, qml, "memory")
-    StyleOnLoad.get(qml).postProcessLayer(layer, None, None)
+    StyledOutput.get(qml).postProcessLayer(layer, None, None)
     renderer = layer.renderer()
     if qml == "crowns.qml":
         assert renderer.type() == "graduatedSymbol" and renderer.classAttribute() == "height"
