@@ -183,9 +183,10 @@ def _leaf_kernel(nodes, radii, sect, live, seglen, total, frac, cphi, sphi, cia,
     ``j`` its segment, position, twig frame, radial and blade directions (rolled, turned to face
     up), base point and card corners.  ``seglen`` / ``total`` are numpy's segment lengths and their
     sums, ``cphi``/``sphi`` cos/sin of the azimuths, ``cia``/``sia`` of the insertion angles,
-    ``cro``/``sro`` of the roll (numpy's too).  Every expression is written as the numpy formulation
-    it replaced computes it (cross products a1 b2 - a2 b1, ..., dot products 0 + x + y + z), so the
-    results are its bits.  Returns base, axis, twig (t, L, 3) and the card corners (cards, 4, 3):
+    ``cro``/``sro`` of the roll (numpy's too).  Every expression is written in the order numpy
+    evaluates the same vector expression (cross products a1 b2 - a2 b1, ..., dot products
+    0 + x + y + z); tests/test_forest_invariants.py guards the leaves (golden outputs, batch equals
+    one tree at a time).  Returns base, axis, twig (t, L, 3) and the card corners (cards, 4, 3):
     leaf ``j`` of tip ``i`` in direction ``e`` (two crossed ones, or one) is card
     ``card0[i] + e * dir_step[i] + j``.
     """

@@ -75,7 +75,7 @@ def _continuation_kernel(nodes, parent, radii, by_radius):
     segment, +z at the root) and the child's segment, rounded to 9 digits (``np.round``) so
     near-equal bends tie; the largest cosine wins, ties go to the larger ``radii`` (when
     ``by_radius``), then to the lower index.  Dot products are written out as 0 + x·x' + y·y' + z·z',
-    the order numpy's row sums use, so the cosines are those of the vectorised formulation.
+    the order numpy's row sums use.
     Needs ``parent[i] < i`` (every Skeleton); NaN cosines rank above all others, as in a sort.
     """
     m = parent.shape[0]

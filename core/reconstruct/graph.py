@@ -18,8 +18,8 @@ CSR matrix straight from the neighbour rows.  Where the k-th and the
 (k+1)-th nearest lie at exactly the same distance (common next to the
 evenly spaced trunk points of §4.2) which one is "the k nearest" is the
 search's own choice; for those points Sylva asks ``scipy.spatial.cKDTree``,
-as Algorithm 1 with a k-d tree did before, so the edges are exactly those
-of the k-d tree implementation (tests/test_skeleton_kernel.py compares them).
+so the edges are exactly those of Algorithm 1 written with a k-d tree
+(tests/test_skeleton_kernel.py compares them).
 
 Defaults (§6.2, Table 1): r_p = 1.2 m, k ∈ [10, 30] "according to r_p";
 Sylva uses k = 30 (see :class:`~.skeleton.GreedySkeleton` for why).

@@ -31,8 +31,9 @@ Eq. 5 knows nothing of an Eq. 3 trunk that leans).
 The loop is inherently sequential (each expansion depends on what earlier
 ones visited), so it runs as a compiled kernel (:mod:`sylva.core.jit`,
 numba) over the CSR arrays: a binary heap for Q, the pruning walk of
-Fig. 14b as a double loop.  tests/test_skeleton_kernel.py checks it against
-the straightforward numpy/heapq implementation it replaced.  The other
+Fig. 14b as a double loop.  tests/test_skeleton_kernel.py checks its
+result against the algorithm's rules (a tree over graph edges, α, β and φ
+respected, nothing admissible left unvisited without regrowth).  The other
 steps are kernels too (graph, voxels and thinning, trunk statistics,
 screening); the method hands the graph's CSR arrays to the loop without
 building a scipy matrix.

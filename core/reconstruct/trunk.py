@@ -61,8 +61,8 @@ def _trunk_stats(xyz, radius_m):
 
     Sums run over the points in order, from the first point on, and lengths
     are sqrt((x² + y²) + z²): what numpy's ``mean(axis=0)`` and
-    ``linalg.norm(axis=1)`` compute for a C-ordered (n, 3) array, bit for bit
-    (tests/test_skeleton_kernel.py compares them).
+    ``linalg.norm(axis=1)`` compute for a C-ordered (n, 3) array
+    (tests/test_skeleton_kernel.py checks the trunk against Eq. 3 / Eq. 4).
     """
     n = xyz.shape[0]
     lo = xyz[0].copy()

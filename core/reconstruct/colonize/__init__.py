@@ -64,12 +64,14 @@ Implementation (Sylva, not in the paper).  The iterations are sequential, so
 they run in one compiled kernel (:func:`.growth.grow_kernel`, numba through
 :mod:`sylva.core.jit`; plain Python without numba), 16 iterations per call
 between progress reports and cancel checks; uniform grids replace the
-per-iteration ``cKDTree`` of the buds and the kill/retirement queries.  The
-kernel does the numpy formulation's arithmetic in the same order (including
-einsum's (x₀y₀ + x₂y₂) + x₁y₁ for 3-vector dot products), so skeletons are
-bit-identical to it; the one difference is the order of *exactly*
-equidistant buds (e.g. two coincident nodes), which ``cKDTree`` leaves to its
-heap and the kernel breaks by node index.  The PCA covariances, the hull
+per-iteration ``cKDTree`` of the buds and the kill/retirement queries.  A
+marker takes its buds in order of distance (the strict ``d² < d_i²`` test of
+a k-d tree query), *exactly* equidistant buds (e.g. two coincident nodes) by
+node index; 3-vector dot products are summed as (x₀y₀ + x₂y₂) + x₁y₁, as
+numpy's einsum does.  tests/test_colonize_kernel.py guards the loop: runs are
+deterministic, the Python and compiled kernels grow the same skeletons,
+growing the node arrays changes nothing, and the skeletons of ~20 synthetic
+trees keep golden figures within tolerances.  The PCA covariances, the hull
 test and the "any point within r" tests are small kernels as well, and the
 crown's convex hull is computed once for the interior test and the fill.
 

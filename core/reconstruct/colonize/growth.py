@@ -30,9 +30,9 @@ def grow_kernel(markers, weight, active, pos, heading, parent, n_children, seed,
     cone ψ + θ/2 otherwise); buds with markers grow one growth unit along
     V_A of Eq. 9; markers within d_k of a new node are killed; the stem's
     apical bud bridges gaps; buds with no marker within 12l are retired every
-    8 iterations.  The arithmetic is written in the same order as the numpy
-    formulation it replaces, so the skeleton is bit-identical (Sylva, not
-    in the paper: an implementation detail).
+    8 iterations.  Its Python form (``py_func``, without numba) grows the
+    same skeleton as the compiled one (tests/test_colonize_kernel.py; Sylva,
+    not in the paper: an implementation detail).
 
     Node arrays are grown here when full and returned.  ``code``: 0 ran to
     ``it_hi``; 1 no marker left; 2 node limit; 3 no free bud; 4 stalled; 5 the
@@ -521,9 +521,9 @@ def grow_kernel(markers, weight, active, pos, heading, parent, n_children, seed,
 def roll_tables(roll: float, size: int):
     """cos and sin of the roll angle φ·j, j < ``size`` (lateral bud j + its children, Table 2's φ).
 
-    Computed by numpy outside the kernel so that they are the very values the
-    numpy formulation used (numpy's vectorised cos/sin may differ from libm's
-    in the last bit).
+    Computed by numpy outside the kernel, so that the compiled kernel and its
+    Python form read the same values (numpy's vectorised cos/sin may differ
+    from libm's in the last bit).
     """
     ang = roll * np.arange(size)
     return np.cos(ang), np.sin(ang)

@@ -197,7 +197,8 @@ def _pca_cov_kernel(xyz, idx):
 
     Centred on the neighbourhood mean and divided by k; sums run over the
     neighbours in the order of ``idx`` (as numpy's mean and einsum do), so the
-    matrices are identical to the numpy formulation (Sylva, not in the paper).
+    matrices are those of numpy's mean/einsum on the gathered neighbourhoods
+    (tests/test_colonize_kernel.py; Sylva, not in the paper).
     """
     n, k = idx.shape
     cov = np.empty((n, 3, 3))
