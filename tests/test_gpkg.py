@@ -144,7 +144,7 @@ def _reference_write_gpkg(path, tables):
     """The hand-written writer before GDAL (one INSERT per row), kept verbatim as the reference for the rows."""
     import sqlite3
 
-    from sylva.core.io.gpkg import _python_values
+    from sylva.core.io.gpkg.write import _python_values
 
     def _promote(geoms, geometry_type):
         if geometry_type == "line":
