@@ -10,11 +10,6 @@ from ...errors import SylvaError
 #: The .qml files that ``styles`` and Param.style name.
 STYLES = Path(__file__).resolve().parents[3] / "resources" / "styles"
 
-_STYLE_FIELDS = (("f_table_catalog", "s", 256), ("f_table_schema", "s", 256), ("f_table_name", "s", 256),
-                 ("f_geometry_column", "s", 256), ("styleName", "s", 30), ("styleQML", "s", 0),
-                 ("styleSLD", "s", 0), ("useAsDefault", "b", 0), ("description", "s", 0), ("owner", "s", 30),
-                 ("ui", "s", 30), ("update_time", "t", 0))
-
 
 def _style_text(style) -> str:
     path = Path(style)

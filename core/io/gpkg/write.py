@@ -18,7 +18,6 @@ from .rtree import add_rtree, blob_bounds
 from .sqlite import PAGE_SIZE, insert_rows, quote
 from .styles import write_styles
 
-_GEOMETRY_NAMES = {"point": "POINT", "line": "MULTILINESTRING", "polygon": "MULTIPOLYGON"}
 _RESERVED = ("gpkg_", "sqlite_", "rtree_")
 
 
