@@ -85,11 +85,16 @@ def grab(widget, path):
 
 def new_3d_view():
     """Trigger View > New 3D Map View; return its dock widget (floating, 1200 x 800)."""
-    before = set(id(d) for d in iface.mainWindow().findChildren(QDockWidget))
+    from qgis.PyQt import sip
+
+    # docks are told apart by their C++ address: Python's id() of a wrapper findChildren made may be reused
+    # once it is collected, and then every dock looks new (a fresh profile grabbed the Layer Styling dock)
+    before = {sip.unwrapinstance(d) for d in iface.mainWindow().findChildren(QDockWidget)}
     action = iface.mainWindow().findChild(QAction, "mActionNew3DMapCanvas")
     action.trigger()
     QApplication.processEvents()
-    docks = [d for d in iface.mainWindow().findChildren(QDockWidget) if id(d) not in before]
+    docks = [d for d in iface.mainWindow().findChildren(QDockWidget)
+             if sip.unwrapinstance(d) not in before and d.windowTitle().startswith("3D Map")]
     if not docks:
         raise RuntimeError("no 3D map view dock appeared")
     dock = docks[-1]
