@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sylva.core.qsm import cylinder_tree, sample_cylinder_surfaces
+from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 from sylva.core.reconstruct.kmeans import VariationalKMeans, segment
 
 HERE = Path(__file__).resolve()

@@ -39,7 +39,7 @@ from .geometry import (DEFAULT_LOD, build_branch_set, continuations, forest_poly
                        localise_parents, norm3, pipe_model_radii, simplify_forest, split_branch_set, tip_counts,
                        tree_branches, trusted_skeleton)
 from .jit import njit
-from .leaves import LeafCards, NeedleClusters, _forest_tip_sections, _grow_leaves, grow_leaves
+from .leaves import LeafCards, NeedleClusters, forest_tip_sections, grow_leaves, leaves_at_tips
 from .measure import TreeMetrics, estimate_dbhs
 from .progress import CancelCheck, Progress, check, report
 from .qsm import measure_qsm, skeleton_qsms
@@ -506,13 +506,13 @@ def _mesh_and_leaf(out: List[ModelledTree], forest, options: ModelOptions, cance
                 continue
             ksegs = int(method.tip_segments)
             if ksegs not in sections:
-                sections[ksegs] = _forest_tip_sections(bs_leaf, leaf_boff, ksegs)
+                sections[ksegs] = forest_tip_sections(bs_leaf, leaf_boff, ksegs)
             sect, tip_tree = sections[ksegs]
             which = np.array([k for k in range(a, b) if kinds[k] == kind], dtype=np.int64)
             chosen = np.zeros(len(out), dtype=bool)
             chosen[which] = True
             pick = chosen[tip_tree]
-            grown = _grow_leaves(shifted, radii, sect[pick], np.searchsorted(which, tip_tree[pick]),
+            grown = leaves_at_tips(shifted, radii, sect[pick], np.searchsorted(which, tip_tree[pick]),
                                  off[which], method, [seeds[k] for k in which])
             for k, leaves in zip(which.tolist(), grown):
                 out[k].leaves = leaves

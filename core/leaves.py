@@ -42,7 +42,8 @@ from .skeleton import Skeleton
 from .textures import leaf_aspect, leaf_texture, leaf_shape_name
 
 __all__ = ["PATTERNS", "GOLDEN_ANGLE_DEG", "phyllotaxis_azimuths", "LeafCards", "NeedleClusters",
-           "LeafMesh", "grow_leaves", "grow_leaves_batch", "leaf_cards", "needle_clusters", "leaf_texture"]
+           "LeafMesh", "grow_leaves", "grow_leaves_batch", "forest_tip_sections", "leaves_at_tips", "leaf_cards",
+           "needle_clusters", "leaf_texture"]
 
 #: The golden angle 180° (3 - sqrt 5) = 137.5077...°, the divergence of spiral phyllotaxis.
 GOLDEN_ANGLE_DEG = float(180.0 * (3.0 - np.sqrt(5.0)))
@@ -338,7 +339,7 @@ def _chain_tips(nodes: np.ndarray, offsets: np.ndarray, tip_segments: int) -> np
     return nodes[pos]
 
 
-def _forest_tip_sections(bs, branch_off: np.ndarray, tip_segments: int):
+def forest_tip_sections(bs, branch_off: np.ndarray, tip_segments: int):
     """:func:`_tip_sections` of every tree of a forest's BranchSet (global node indices) and the tree of each."""
     sect = _chain_tips(bs.nodes, bs.offsets, tip_segments)
     tree_of_branch = np.repeat(np.arange(len(branch_off) - 1), np.diff(branch_off))
@@ -401,7 +402,7 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
         return []
     nodes_all, _, node_off = join_forest(skeletons)
     sect_all = np.concatenate(sects) + np.repeat(node_off[:-1], [len(x) for x in sects])[:, None]
-    return _grow_leaves(nodes_all, np.concatenate(rad_all), sect_all, np.concatenate(tip_tree), node_off[:-1],
+    return leaves_at_tips(nodes_all, np.concatenate(rad_all), sect_all, np.concatenate(tip_tree), node_off[:-1],
                         method, seeds)
 
 
@@ -418,7 +419,7 @@ def _leaf_sizes(method: Union[LeafCards, NeedleClusters]):
     return needles, per_tip, length_m, width_m, shape, int(method.tip_segments)
 
 
-def _grow_leaves(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip_tree: np.ndarray,
+def leaves_at_tips(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip_tree: np.ndarray,
                  node_start: np.ndarray, method: Union[LeafCards, NeedleClusters], seeds) -> list:
     """The leaves of :func:`grow_leaves_batch` from the trees' tip sections, one vectorised pass for all tips.
 

@@ -172,14 +172,8 @@ def test_no_import_cycles():
     assert cycles == []
 
 
-#: Private names still shared by the branch-geometry modules: core/forest.py takes the batch leaf
-#: passes of core/leaves.py (the forest arrays of core/geometry/ are public since its split, issue
-#: 19); no other module may join them.
-PRIVATE_DEBT = {"sylva.core.leaves"}
-
-
 def test_no_private_names_cross_modules():
     mods = _modules()
     private = sorted(f"{a} takes {name} from {b}" for a, b, name in _edges(mods)
-                     if name.startswith("_") and not name.startswith("__") and b != a and b not in PRIVATE_DEBT)
+                     if name.startswith("_") and not name.startswith("__") and b != a)
     assert private == []

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from sylva.core.errors import EmptyInputError, InputError, SylvaError
-from sylva.core.qsm import cylinder_tree, measure_qsm, sample_cylinder_surfaces
+from sylva.core.qsm import measure_qsm
+from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 from sylva.core.reconstruct import TreePoints, reconstruct_tree
 from sylva.core.reconstruct.kmeans import (VariationalKMeans, bounding_cylinders, energy, is_dense_scan,
                                            knn_graph, lloyd, point_normals, segment)

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from sylva.core.errors import InputError
-from sylva.core.qsm import (BRANCH_FIELDS, CYLINDER_FIELDS, branches_table, cylinder_tree, cylinders_from_curves,
-                            cylinders_table, measure_qsm, sample_cylinder_surfaces, trees_table,
-                            write_branches_csv, write_cylinders_csv, write_trees_csv)
+from sylva.core.qsm import (BRANCH_FIELDS, CYLINDER_FIELDS, branches_table, cylinders_from_curves, cylinders_table,
+                            measure_qsm, trees_table, write_branches_csv, write_cylinders_csv, write_trees_csv)
+from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 
 
 def two_level_tree():

@@ -110,7 +110,7 @@ def dense_and_sparse(tmp_path_factory):
     from pyproj import CRS
 
     from sylva.core.cloud import PointCloud
-    from sylva.core.qsm import cylinder_tree, sample_cylinder_surfaces
+    from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 
     truth = cylinder_tree(PSI)
     pts = sample_cylinder_surfaces(truth, spacing_m=0.02, noise_m=0.002, seed=3)

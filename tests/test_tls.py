@@ -9,7 +9,8 @@ import pytest
 
 from sylva import cli
 from sylva.core.export.read import read_models
-from sylva.core.qsm import cylinder_tree, measure_qsm, sample_cylinder_surfaces
+from sylva.core.qsm import measure_qsm
+from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 from sylva.core.reconstruct import TreePoints
 from sylva.core.reconstruct.levelset import LevelSetQSM, line_cylinders, tube_mesh
 

@@ -61,6 +61,7 @@ from ..circles import arc_sectors, fit_circles
 from ..errors import InputError
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
+from ..qsm import group_median
 from .model import Reconstruction, Skeleton, TreePoints, screen
 
 __all__ = ["LevelSetQSM", "level_set_nodes"]
@@ -399,7 +400,7 @@ def _fit_sections(pts, lab, centroid, axis, m, min_arc_deg, iterations=6):
     x, y = (q * e1[lab]).sum(1), (q * e2[lab]).sum(1)
     rho = np.hypot(x, y)
     cnt = np.bincount(lab, minlength=m).astype(np.float64)
-    med = _group_median(rho, lab, m)
+    med = group_median(rho, lab, m)
     good = (cnt >= 8) & (arc_sectors(x, y, lab, m) >= 90)     # arc coverage around the centroid
     # the fit, its residual and the arc the points cover seen from the fitted centre
     cx, cy, r, rms, arc = fit_circles(x, y, lab, m, iterations=iterations, fit=good)
@@ -411,18 +412,6 @@ def _fit_sections(pts, lab, centroid, axis, m, min_arc_deg, iterations=6):
     radius = np.where(good, r, np.where(np.isfinite(med), med, 0.0))
     radius = np.maximum(radius, 0.002)
     return centre, radius, good
-
-
-def _group_median(values, groups, n):
-    out = np.full(n, np.nan)
-    if len(values) == 0:
-        return out
-    order = np.lexsort((values, groups))
-    g, v = groups[order], values[order]
-    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    c = np.diff(np.r_[starts, len(g)])
-    out[g[starts]] = (v[starts + (c - 1) // 2] + v[starts + c // 2]) / 2
-    return out
 
 
 @njit
