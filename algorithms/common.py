@@ -5,7 +5,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..core.errors import CRSError, InputError
-from .spec import CRS, FILE, INTEGER, NUMBER, STRING, Feedback, Param
+from .spec import CRS, ENUM, FILE, INTEGER, LEAF_LABELS, NUMBER, STRING, Feedback, Param
 
 POINT_CLOUD_FILTER = "LAS/LAZ point clouds (*.las *.laz);;Text point clouds (*.xyz *.txt *.csv);;All files (*)"
 RASTER_SUFFIXES = (".tif", ".tiff")
@@ -37,6 +37,23 @@ def lod_param(advanced: bool = False) -> Param:
                  advanced=advanced,
                  help="0: light models (4-sided branches, twigs under 3 cm pruned; ~40 kB a tree); 1: 8 sides, "
                       "smoothed (~0.5 MB a tree); 2: 12 sides, every twig.")
+
+
+def top_window_param() -> Param:
+    """TOP_WINDOW_M of segmenttrees and pipeline (one chain, core/segment/tile.py): empty, the method's own
+    default (e.g. :attr:`sylva.core.segment.NormalizedCut.top_window_m`)."""
+    return Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
+                 help="Diameter of the local-maximum window that finds the tree tops guiding the "
+                      "segmentation; left empty (or 0), each method uses its own measured default.")
+
+
+def leaves_param(advanced: bool = False, help: str = "auto: needle clusters on conical crowns, leaf cards "
+                                                     "(phyllotaxis, Hu §5.6) otherwise; none: bare wood.") -> Param:
+    """LEAVES (the leaf kind to grow) of every algorithm that builds models: :data:`sylva.core.forest.LEAVES`."""
+    from ..core.forest import LEAVES
+
+    return Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto", labels=LEAF_LABELS, advanced=advanced,
+                 help=help)
 
 
 def crs_override() -> Param:

@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
-from .common import (buffer_param, crs_override, lod_param, min_height_param, scheduler_of, scheduler_param,
-                     tiles_and_folder, tiles_input, workers_param)
+from .common import (buffer_param, crs_override, leaves_param, lod_param, min_height_param, scheduler_of, scheduler_param,
+                     tiles_and_folder, tiles_input, top_window_param, workers_param)
 from .segment import SEGMENTATION_LABELS
-from .spec import (BOOLEAN, ENUM, FOLDER_OUT, LEAF_LABELS, NUMBER, NUMBER_RESULT,
+from .spec import (BOOLEAN, ENUM, FOLDER_OUT, NUMBER, NUMBER_RESULT,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)
 
 SEGMENTATION = {"ncut": NormalizedCut, "chm": ChmRegionGrowing}
@@ -77,18 +77,13 @@ PIPELINE = Algorithm(
               labels=SEGMENTATION_LABELS[:2],
               help="ncut: normalised cut on a voxel graph (Hu et al. 2017); chm: region growing on the "
                    "canopy height model (Dalponte & Coomes 2016)."),
-        Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
-              help="Diameter of the local-maximum window that finds the tree tops guiding the "
-                   "segmentation; left empty, each method uses its own measured default (as in "
-                   "segmenttrees: the same chain and the same tops)."),
+        top_window_param(),
         min_height_param(),
         Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,
               help="Model every tree (hybrid greedy skeleton / guided growth) and write GLB and 3D Tiles; "
                    "off: segmentation and measurements only (much faster)."),
         lod_param(advanced=True),
-        Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
-              labels=LEAF_LABELS,
-              advanced=True, help="auto: needles on conical crowns, leaf cards otherwise."),
+        leaves_param(advanced=True),
         Param("BILLBOARDS", BOOLEAN, "Billboards as the far level of detail", default=False, advanced=True,
               help="Also build each tree's textured billboard (Zhou et al. 2013: six quads, textured from the "
                    "points' RGB when the tiles have colour) and draw it in the 3D Tiles tileset's far tile "

@@ -8,8 +8,8 @@ import numpy as np
 from ..core.progress import scaled
 from ..core.reconstruct import GreedySkeleton, GuidedGrowth
 from ..core.table import VectorTable
-from .common import build_method, crs_override, input_cloud, lod_param, method_params
-from .spec import (ENUM, FILE_OUT, FOLDER_OUT, LEAF_LABELS, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
+from .common import build_method, crs_override, input_cloud, leaves_param, lod_param, method_params
+from .spec import (ENUM, FILE_OUT, FOLDER_OUT, LINE, NO_GEOMETRY, NUMBER_RESULT, VECTOR_OUT,
                    Algorithm, Feedback, Param, Result)
 
 METHODS = ("hybrid", "greedy", "guided", "dense", "auto", "completed", "yan")
@@ -224,10 +224,8 @@ RECONSTRUCT_TREES = Algorithm(
         *GREEDY_PARAMS,
         *GUIDED_PARAMS,
         lod_param(),
-        Param("LEAVES", ENUM, "Leaves", options=("auto", "broadleaf", "needles", "none"), default="auto",
-              labels=LEAF_LABELS,
-              help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise; "
-                   "none on wood fitted to a dense scan."),
+        leaves_param(help="auto: needle clusters on conical crowns, leaf cards (phyllotaxis, Hu §5.6) otherwise; "
+                          "none on wood fitted to a dense scan."),
         crs_override(),
         Param("MODELS", FILE_OUT, "3D models (GLB)", file_filter="glTF binary (*.glb)", optional=True,
               help="One GLB for the tile, a node per tree named tree_<id>, with a .prj and an origin sidecar."),

@@ -7,7 +7,8 @@ from ..core.progress import scaled
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from ..core.segment.stems import AutoSegmentation, StemSegmentation
 from ..core.table import VectorTable
-from .common import build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params, min_height_param
+from .common import (build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params, min_height_param,
+                     top_window_param)
 from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
                    Algorithm, Feedback, Param, Result)
 
@@ -253,9 +254,7 @@ SEGMENT_TREES = Algorithm(
                    "it is connected to (Cabo et al. 2018; Laino et al. 2024, 3DFin), with the ground "
                    "classified under the canopy from the lowest points. Each method's own settings are "
                    "under Advanced parameters, named after it."),
-        Param("TOP_WINDOW_M", NUMBER, "Tree-top window (m)", optional=True, minimum=0.0, maximum=50.0,
-              help="Diameter of the local-maximum window that finds the tree tops guiding the "
-                   "segmentation; left empty (or 0), each method uses its own measured default."),
+        top_window_param(),
         min_height_param(),
         *NCUT_PARAMS,
         *CHM_PARAMS,

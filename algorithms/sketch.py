@@ -5,11 +5,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.forest import LEAVES
 from ..core.geometry import DEFAULT_LOD
 from ..core.reconstruct.sketch import SketchTree
-from .common import build_method, lod_param, method_params
-from .spec import (ENUM, FILE_OUT, LEAF_LABELS, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
+from .common import build_method, leaves_param, lod_param, method_params
+from .spec import (FILE_OUT, LINE, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR,
                    VECTOR_OUT, Algorithm, Feedback, Param, Result)
 
 SKETCH_PARAMS = method_params(SketchTree, {
@@ -217,8 +216,7 @@ TREE_FROM_SKETCH = Algorithm(
                    "drawing's right is east and the side photo looks west)."),
         *SKETCH_PARAMS,
         lod_param(advanced=True),
-        Param("LEAVES", ENUM, "Leaves", options=LEAVES, default="auto", labels=LEAF_LABELS,
-              help="auto: needle clusters on a conical crown, leaf cards otherwise; none: bare wood."),
+        leaves_param(help="auto: needle clusters on a conical crown, leaf cards otherwise; none: bare wood."),
         Param("MODEL", FILE_OUT, "3D model (GLB)", file_filter="glTF binary (*.glb)", optional=True,
               help="One GLB with a node tree_1, georeferenced at LOCATION (.prj and origin sidecars)."),
         Param("SKELETON", VECTOR_OUT, "Skeleton", geometry=LINE,
