@@ -92,6 +92,9 @@ HELPER_CASES = {
     "bucket_by_cell": [(np.random.default_rng(3).integers(0, 50, 400), 50), (np.zeros(0, dtype=np.int64), 3)],
     "uf_find": [(np.array([0, 0, 1, 2, 4, 4]), 3), (np.arange(5), 4)],
     "uf_union": [(np.array([0, 0, 1, 2, 4, 4]), 3, 5), (np.array([0, 0, 1, 2, 4, 4]), 3, 1)],
+    "grown_nodes": [(7, 3, np.arange(15.0).reshape(5, 3), -np.arange(15.0).reshape(5, 3), np.array([-1, 0, 1, 2, 3]),
+                     np.array([1, 1, 0, 4, 4]), *(np.array(b, dtype=bool) for b in ([1, 0, 1, 1, 0], [0, 1, 1, 0, 1],
+                                                                                      [1, 1, 0, 0, 1], [0, 0, 1, 1, 1])))],
 }
 
 

@@ -9,11 +9,34 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...jit import njit
+from ...jit import helper, njit
 
 
 _K_BUDS = 8          # nearest buds examined per marker for the perception test
 _STALL_LIMIT = 6     # consecutive iterations without growth (d_i widened x1.5 each) before stopping
+
+
+@helper
+def grown_nodes(cap, m, pos, heading, parent, n_children, seed, bud_free, added, leader):
+    """The node arrays of :func:`grow_kernel` (:class:`Nodes`'s) moved into arrays of ``cap`` rows, their
+    first ``m`` rows kept, the new rows zero (``parent`` -1)."""
+    p = np.zeros((cap, 3))
+    p[:m] = pos[:m]
+    h = np.zeros((cap, 3))
+    h[:m] = heading[:m]
+    a = np.full(cap, -1, dtype=np.int64)
+    a[:m] = parent[:m]
+    c = np.zeros(cap, dtype=np.int64)
+    c[:m] = n_children[:m]
+    s = np.zeros(cap, dtype=np.bool_)
+    s[:m] = seed[:m]
+    f = np.zeros(cap, dtype=np.bool_)
+    f[:m] = bud_free[:m]
+    d = np.zeros(cap, dtype=np.bool_)
+    d[:m] = added[:m]
+    e = np.zeros(cap, dtype=np.bool_)
+    e[:m] = leader[:m]
+    return p, h, a, c, s, f, d, e
 
 
 @njit
@@ -220,14 +243,8 @@ def grow_kernel(markers, weight, active, pos, heading, parent, n_children, seed,
                 need = m + nt * ku
                 if need > cap:
                     cap = max(need, 2 * cap)
-                    p2 = np.zeros((cap, 3)); p2[:m] = pos[:m]; pos = p2
-                    h2 = np.zeros((cap, 3)); h2[:m] = heading[:m]; heading = h2
-                    a2 = np.full(cap, -1, dtype=np.int64); a2[:m] = parent[:m]; parent = a2
-                    c2 = np.zeros(cap, dtype=np.int64); c2[:m] = n_children[:m]; n_children = c2
-                    s2 = np.zeros(cap, dtype=np.bool_); s2[:m] = seed[:m]; seed = s2
-                    f2 = np.zeros(cap, dtype=np.bool_); f2[:m] = bud_free[:m]; bud_free = f2
-                    d2a = np.zeros(cap, dtype=np.bool_); d2a[:m] = added[:m]; added = d2a
-                    e2 = np.zeros(cap, dtype=np.bool_); e2[:m] = leader[:m]; leader = e2
+                    pos, heading, parent, n_children, seed, bud_free, added, leader = grown_nodes(
+                        cap, m, pos, heading, parent, n_children, seed, bud_free, added, leader)
                 first_new = m
                 for t in range(nt):
                     j = tips[t]
@@ -425,14 +442,8 @@ def grow_kernel(markers, weight, active, pos, heading, parent, n_children, seed,
         need = m + total
         if need > cap:
             cap = max(need, 2 * cap)
-            p2 = np.zeros((cap, 3)); p2[:m] = pos[:m]; pos = p2
-            h2a = np.zeros((cap, 3)); h2a[:m] = heading[:m]; heading = h2a
-            a2a = np.full(cap, -1, dtype=np.int64); a2a[:m] = parent[:m]; parent = a2a
-            c2a = np.zeros(cap, dtype=np.int64); c2a[:m] = n_children[:m]; n_children = c2a
-            s2 = np.zeros(cap, dtype=np.bool_); s2[:m] = seed[:m]; seed = s2
-            f2a = np.zeros(cap, dtype=np.bool_); f2a[:m] = bud_free[:m]; bud_free = f2a
-            d2a = np.zeros(cap, dtype=np.bool_); d2a[:m] = added[:m]; added = d2a
-            e2a = np.zeros(cap, dtype=np.bool_); e2a[:m] = leader[:m]; leader = e2a
+            pos, heading, parent, n_children, seed, bud_free, added, leader = grown_nodes(
+                cap, m, pos, heading, parent, n_children, seed, bud_free, added, leader)
         first_new = m
         for g in range(ng):
             j = grow[g]
