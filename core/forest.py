@@ -321,9 +321,10 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
 def _fitted_wood(dense, base_local: np.ndarray, lod: int):
     """The tubes of a fitted dense model (:func:`sylva.core.reconstruct.levelset.tube_mesh`) as a trimesh,
     origin at the tree's base; ``lod`` 0 / 1 / 2 sweeps the thickest branches with at most 8 / 10 / 14 sides,
-    thinner ones with the fewest sides whose chord error is at most 8 / 4 / 2 mm, the polygon's mean
-    distance to the axis matched to the fitted radius (so within about half that of the circle); twigs
-    under 8 mm radius start at a point inside their parent."""
+    thinner ones with the fewest sides whose chord error is at most 8 / 4 / 2 mm (at LOD 0 at least the
+    model's ``mesh_chord_m``, a share of the scan's point spacing), the polygon's mean distance to the axis
+    matched to the fitted radius (so within about half that of the circle); twigs under 8 mm radius start
+    at a point inside their parent."""
     import trimesh
 
     from .reconstruct.levelset import tube_mesh
@@ -331,7 +332,10 @@ def _fitted_wood(dense, base_local: np.ndarray, lod: int):
     sides = {0: 8, 1: 10}.get(int(lod), 14)
     curves, radii = ((dense.curves, dense.curve_radii) if dense.mesh_curves is None
                      else (dense.mesh_curves, dense.mesh_radii))
-    v, f = tube_mesh(curves, radii, sides=sides, tolerance_m={0: 0.008, 1: 0.004}.get(int(lod), 0.002),
+    tolerance = {0: 0.008, 1: 0.004}.get(int(lod), 0.002)
+    if int(lod) == 0:
+        tolerance = max(tolerance, float(getattr(dense, "mesh_chord_m", 0.0)))
+    v, f = tube_mesh(curves, radii, sides=sides, tolerance_m=tolerance,
                      match=True, pointed_m=0.008)
     return trimesh.Trimesh(v - base_local, f, process=False)
 

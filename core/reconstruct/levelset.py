@@ -38,7 +38,8 @@ times that radius (wide bins keep a thick stem's cross-section whole, narrow one
 stubs (leaf branches that stay within three parent radii + three bins of the parent, :func:`prune_stubs`)
 are dropped; the wood mesh (:func:`fitted_mesh_lines`) is one tube per run of the structure's circle-fitted
 cross-sections at least ``thick_m`` thick, plus the branches of a third pass with narrow bins everywhere
-(``fine_spacing`` point spacings, at least ``min_bin_m``) whose points those tubes do not cover; tubes no
+(``fine_spacing`` point spacings, at least ``min_bin_m``; along a twig, nodes of fewer than ``fine_min_points``
+points joined to their parent) whose points those tubes do not cover; tubes no
 point is nearest to are left out (:func:`prune_redundant`), and every tube gets the fewest polygon sides
 whose chord error is within a tolerance, its polygon as far from the axis on average as the fitted circle
 (:func:`tube_mesh`).
@@ -81,7 +82,15 @@ class LevelSetQSM:
     points are left out (isolated noise); ``sides`` of the tubes (thick ones: ``sides``, twigs
     under 3 cm radius: ``twig_sides``); ``max_points`` larger trees are thinned to a voxel grid
     first; ``thick_m``, ``cover_m``, ``cover_share``: the wood mesh's fitted stem tubes and the fine
-    branches kept beside them (:func:`fitted_mesh_lines`).
+    branches kept beside them (:func:`fitted_mesh_lines`); ``fine_min_points`` a node of the fine level
+    with one child and fewer points joins its parent (:func:`level_set_nodes` ``min_points``); ``chord_spacing`` the LOD 0 wood mesh's
+    polygons may lie off the fitted circle by this many point spacings (the median distance to the 8th
+    neighbour) when that exceeds the LOD's own tolerance (:attr:`DenseModel.mesh_chord_m`; Sylva, not in
+    the papers: a polygon finer than the scan's spacing shows no more of what was scanned; TLS trees
+    1 / 7 / 13: 2.5 / 1.5 / 8.5 cm instead of 8 mm, 19,122 / 14,511 / 18,824 -> 15,525 / 12,747 / 12,952
+    vertices and points -> surface 0.83 / 0.63 / 2.38 -> 0.80 / 0.61 / 2.32 cm, surface -> points about
+    unchanged, the polygon's mean distance to the axis being the circle's; the synthetic trees, 2.4 cm
+    spacing, get 1.1 cm).
     """
 
     k: int = 10
@@ -90,6 +99,7 @@ class LevelSetQSM:
     min_bin_m: float = 0.02
     adaptive: float = 0.6
     fine_spacing: float = 0.25
+    fine_min_points: int = 3
     thick_m: float = 0.03
     cover_m: float = 0.01
     cover_share: float = 0.2
@@ -102,6 +112,7 @@ class LevelSetQSM:
     twig_sides: int = 6
     max_points: int = 400_000
     min_points: int = 50
+    chord_spacing: float = 0.45
 
     name = "level_set_qsm"
     #: model_trees takes this method's own tubes as the wood mesh
@@ -142,7 +153,7 @@ class LevelSetQSM:
             width = np.clip(self.adaptive * r, fine, max(coarse["bin_m"], fine))
             nodes = level_set_nodes(xyz, self, width=width, prep=coarse["prep"])
             nodes["bin_m"] = fine
-            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"])
+            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"], min_points=self.fine_min_points)
         report(progress, 0.6, "level sets")
         check(cancelled)
         structure = _branches(nodes, ground_z)
@@ -164,6 +175,7 @@ class LevelSetQSM:
         dm = DenseModel(rec, None, None, curves, radii, bparent, border, cyl)
         if mesh_curves is not None:
             dm.mesh_curves, dm.mesh_radii = mesh_curves, mesh_radii
+        dm.mesh_chord_m = self.chord_spacing * float(nodes["spacing"])
         return dm
 
     def reconstruct(self, tree: TreePoints, progress: Progress = None, cancelled: CancelCheck = None):
@@ -229,13 +241,16 @@ def _bridge(xyz: np.ndarray, g: sparse.csr_matrix, root: int, min_component: int
     return g, used, n_bridges
 
 
-def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=None, prep=None) -> dict:
+def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=None, prep=None,
+                    min_points: int = 1) -> dict:
     """The level-set nodes of a tree's points: centres, radii, parents (see the module docstring).
 
     ``width`` (n,) optional bin width per point (m): the geodesic distance is then measured in local
     bin widths (every edge's length divided by the mean width of its ends) and binned by 1, so bins are
     wide on thick stems and narrow on twigs.  ``prep`` the ``prep`` of an earlier call on the same points
-    (graph, spacing, used mask, bridges).  Returns a dict: ``centre`` (m, 3), ``radius`` (m,), ``parent``
+    (graph, spacing, used mask, bridges).  ``min_points``: a node with exactly one child and fewer points
+    (its own and those of the nodes already merged into it) joins its parent, tips first
+    (:func:`_merge_thin_nodes`).  Returns a dict: ``centre`` (m, 3), ``radius`` (m,), ``parent``
     (m,) (-1 for the root, parents first), ``count`` points per node, ``tip`` (m, 3) the farthest point of
     each node along its axis, ``fitted`` (m,) True where a circle was fitted, ``label`` per point its node
     (-1 unused), and ``bin_m``, ``spacing``, ``n_used``, ``n_bridges``, ``prep``.
@@ -302,6 +317,14 @@ def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=Non
     roots = np.flatnonzero(parent < 0)
     parent[roots[1:]] = roots[0]          # several pieces among the sources: all hang from the first
     cnt = np.bincount(lab[ok], minlength=m).astype(np.float64)
+    if min_points > 1 and m > 1:
+        target = _merge_thin_nodes(parent, cnt, float(min_points))
+        kept = target == np.arange(m)
+        new = np.cumsum(kept) - 1                 # kept nodes keep their order: parents still come first
+        lab[ok] = new[target[lab[ok]]]
+        parent = np.where(parent[kept] >= 0, new[target[np.maximum(parent[kept], 0)]], -1)
+        m = int(kept.sum())
+        cnt = np.bincount(lab[ok], minlength=m).astype(np.float64)
     centroid = np.stack([np.bincount(lab[ok], weights=xyz[ok, c], minlength=m) for c in range(3)], 1) / cnt[:, None]
     axis = _axes(centroid, parent)
     centre, radius, fitted = _fit_sections(xyz[ok], lab[ok], centroid, axis, m, opt.min_arc_deg)
@@ -313,6 +336,37 @@ def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=Non
     return dict(centre=centre, radius=radius, parent=parent, count=cnt, tip=tip, fitted=fitted, axis=axis,
                 label=lab, z_min=float(z0), bin_m=bin_m_real, spacing=spacing, n_used=int(ok.sum()),
                 n_bridges=n_bridges, prep=prep)
+
+
+@njit
+def _merge_thin_nodes(parent, cnt, least):
+    """Per node the node it ends up in: a node with exactly one child and fewer than ``least`` points
+    (its own and those already merged into it) joins its parent, tips first (parents come first, so a
+    run of such nodes along a twig becomes nodes of at least ``least`` points); the forks and the tips
+    stay.  Yan et al. (2009) §2.4 subdivide a cluster only while it holds more than a user-set number of
+    points; here the fine level's bins, a quarter of the 8th-neighbour distance wide (narrower than the
+    nearest-neighbour distance on a sparse scan: about one point per bin along a twig), are joined
+    along a twig until a node holds that many, which on a surface of uniform spacing spans about the
+    distance to its ``least``-th neighbour: the node's size follows the scan's spacing (Sylva, not in the
+    paper).  Forks and tips are kept: a twig's last point is where its tube reaches, and leaving the tips
+    out (or merging every small node) cost points -> surface on the TLS trees (benchmarks/dense.py).  With
+    ``least`` 3: fine nodes of TLS trees 1 / 7 / 13: 4,379 / 3,562 / 3,406 -> 3,871 / 3,262 / 2,965."""
+    m = parent.shape[0]
+    c = cnt.copy()
+    target = np.arange(m)
+    kids = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        if parent[i] >= 0:
+            kids[parent[i]] += 1
+    for i in range(m - 1, 0, -1):
+        p = parent[i]
+        if p >= 0 and kids[i] == 1 and c[i] < least:
+            target[i] = p
+            c[p] += c[i]
+            kids[p] += kids[i] - 1            # i's child now hangs from p
+    for i in range(m):
+        target[i] = target[target[i]]
+    return target
 
 
 def _group_argmin(values, labels, n):

@@ -41,6 +41,8 @@ class DenseModel:
     #: centre lines and radii of the wood mesh when they differ from ``curves`` (levelset.LevelSetQSM)
     mesh_curves: Optional[List[np.ndarray]] = None
     mesh_radii: Optional[List[np.ndarray]] = None
+    #: least chord tolerance (m) of the wood mesh's polygons at LOD 0 (levelset.LevelSetQSM.chord_spacing)
+    mesh_chord_m: float = 0.0
 
     def mesh(self, sides: int = 10, cap: bool = True) -> Tuple[np.ndarray, np.ndarray]:
         """Lofted surface of all branches (Yan §4.2, ``n2 = 10`` sides, RMF frames) as (vertices, faces)."""
