@@ -212,7 +212,7 @@ def true_model_rows(syn):
     """The same two measures for the TRUE cylinders (16-sided closed tubes): what a perfect closed model
     scores.  Surface -> points of a closed model is large where the scan did not see the wood (the far
     side of a one-sided scan) and at joints and caps, whatever the model."""
-    from sylva.core.reconstruct.levelset import tube_mesh
+    from sylva.core.reconstruct.wood_mesh import tube_mesh
 
     print("\ntrue cylinders (a perfect closed model), same measures:")
     for kind, seed in (("small", 0), ("large", 1)):

@@ -319,7 +319,7 @@ def model_trees(cloud: PointCloud, labels: np.ndarray, metrics: TreeMetrics,
 
 
 def _fitted_wood(dense, base_local: np.ndarray, lod: int):
-    """The tubes of a fitted dense model (:func:`sylva.core.reconstruct.levelset.tube_mesh`) as a trimesh,
+    """The tubes of a fitted dense model (:func:`sylva.core.reconstruct.wood_mesh.tube_mesh`) as a trimesh,
     origin at the tree's base; ``lod`` 0 / 1 / 2 sweeps the thickest branches with at most 8 / 10 / 14 sides,
     thinner ones with the fewest sides whose chord error is at most 8 / 4 / 2 mm (at LOD 0 at least the
     model's ``mesh_chord_m``, a share of the scan's point spacing), the polygon's mean distance to the axis
@@ -327,7 +327,7 @@ def _fitted_wood(dense, base_local: np.ndarray, lod: int):
     at a point inside their parent."""
     import trimesh
 
-    from .reconstruct.levelset import tube_mesh
+    from .reconstruct.wood_mesh import tube_mesh
 
     sides = {0: 8, 1: 10}.get(int(lod), 14)
     curves, radii = ((dense.curves, dense.curve_radii) if dense.mesh_curves is None

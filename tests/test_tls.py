@@ -12,7 +12,8 @@ from sylva.core.export.read import read_models
 from sylva.core.qsm import measure_qsm
 from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 from sylva.core.reconstruct import TreePoints
-from sylva.core.reconstruct.levelset import LevelSetQSM, line_cylinders, tube_mesh
+from sylva.core.reconstruct.levelset import LevelSetQSM
+from sylva.core.reconstruct.wood_mesh import line_cylinders, tube_mesh
 
 TLS = Path(__file__).resolve().parents[2] / "shared" / "data" / "tls"
 
@@ -162,7 +163,7 @@ def test_tube_polygons_fans_and_pointed_twigs():
     fans of their own rings (no centre vertex), twigs starting at a point: every tube closed and outward."""
     import trimesh
 
-    from sylva.core.reconstruct.levelset import mean_radius_factor, polygon_sides
+    from sylva.core.reconstruct.wood_mesh import mean_radius_factor, polygon_sides
 
     assert polygon_sides([0.002, 0.016, 0.05, 0.5], 0.008, 8).tolist() == [3, 3, 6, 8]
     r = np.array([0.002, 0.016, 0.05])
