@@ -61,7 +61,10 @@ def fitted_mesh_lines(structure, nodes: dict, fine_branches, fine: dict, xyz: np
         far_pt = np.abs(d - rad[j]).min(axis=1) > cover_m
         far = np.bincount(lab[ok], weights=far_pt[ok].astype(float), minlength=m) / np.maximum(
             np.bincount(lab[ok], minlength=m), 1)
-        keep = [k for k, ch in enumerate(fchains) if far[ch].mean() > cover_share]
+        lens = np.array([len(ch) for ch in fchains], dtype=np.int64)
+        sums = np.bincount(np.repeat(np.arange(len(fchains)), lens), minlength=len(fchains),
+                           weights=far[np.concatenate(fchains)] if len(fchains) else None)
+        keep = np.flatnonzero(sums > cover_share * lens).tolist()      # the chain's mean share above cover_share
     else:
         keep = range(len(fc))
     curves += [fc[k] for k in keep]
@@ -70,7 +73,7 @@ def fitted_mesh_lines(structure, nodes: dict, fine_branches, fine: dict, xyz: np
     return prune_redundant(curves, radii, xyz)
 
 
-def prune_redundant(curves, radii, xyz: np.ndarray, cost_m: float = 0.0, step_m: float = 0.01, k: int = 16):
+def prune_redundant(curves, radii, xyz: np.ndarray, cost_m: float = 0.0, step_m: float = 0.02, k: int = 16):
     """Leave out the tubes the points do not need (Sylva, measured by benchmarks/dense.py): every point is
     served by the tube whose surface is nearest (distance to the centre line sampled every ``step_m``,
     less the radius there), and a tube goes when serving its points by their next-nearest tube instead
@@ -78,7 +81,8 @@ def prune_redundant(curves, radii, xyz: np.ndarray, cost_m: float = 0.0, step_m:
     same branch, a tube no point is nearest to).  Cheapest first; a tube that takes over the points of
     a dropped one is kept.  The default ``cost_m`` 0 drops only the tubes that serve no point (TLS trees
     1 / 7 / 13: about 190 / 110 / 100 of 2,000 / 1,500 / 1,900 tubes, points -> surface unchanged).
-    Returns the kept (curves, radii)."""
+    Samples every 2 cm rather than 1 cm: the same points -> surface within 0.005 cm, vertices within
+    1.1 %, a quarter less time for the whole tree on tree13.  Returns the kept (curves, radii)."""
     nt = len(curves)
     if nt < 2 or not len(xyz):
         return curves, radii
@@ -120,11 +124,12 @@ def prune_redundant(curves, radii, xyz: np.ndarray, cost_m: float = 0.0, step_m:
     keep = np.ones(nt, dtype=bool)
     protected = np.zeros(nt, dtype=bool)
     order = np.argsort(cost, kind="stable")
-    by_tube = np.split(np.argsort(best, kind="stable"), np.cumsum(np.bincount(best, minlength=nt))[:-1])
+    served = np.argsort(best, kind="stable")                # the points of tube b: served[start[b]:start[b + 1]]
+    start = np.r_[0, np.cumsum(np.bincount(best, minlength=nt))]
     for b in order[cost[order] <= cost_m]:
         if protected[b]:
             continue
-        sec = second[by_tube[b]]
+        sec = second[served[start[b]:start[b + 1]]]
         if (sec < 0).any() or (~keep[sec]).any():
             continue
         keep[b] = False
