@@ -168,3 +168,39 @@ def test_refit_radii_recovers_true_radii_and_axis_offsets():
     tp = taper_radii(fat)
     assert tp["radius"][12] == pytest.approx(truth["radius"][fat["parent"][12]])
     assert np.array_equal(tp["radius"][13:], truth["radius"][13:])
+
+
+def test_cylinders_from_curves_joins_each_branch_to_the_nearest_cylinder_of_its_parent():
+    rng = np.random.default_rng(5)
+    curves, radii, parents = [np.cumsum(rng.normal(0, 0.3, (30, 3)), axis=0)], [rng.uniform(0.1, 0.2, 30)], [-1]
+    for b in range(1, 25):
+        p = int(rng.integers(0, b))
+        start = curves[p][int(rng.integers(0, len(curves[p])))]
+        n = int(rng.integers(1, 12))          # a branch of one sample has no cylinder
+        curves.append(start + np.cumsum(rng.normal(0, 0.2, (n, 3)), axis=0))
+        radii.append(rng.uniform(0.01, 0.1, n))
+        parents.append(p)
+    for segment_radii in (False, True):
+        rr = [r[:-1] if segment_radii else r for r in radii]
+        cyl = cylinders_from_curves(curves, rr, parents, segment_radii=segment_radii)
+        n = len(cyl["id"])
+        assert n == sum(len(c) - 1 for c in curves)
+        assert (cyl["parent"] < np.arange(n)).all()
+        mid = cyl["start"] + cyl["axis"] * cyl["length"][:, None] / 2
+        depth = {-1: -1}
+        for b, p in enumerate(parents):
+            depth[b] = depth[p] + 1
+        for b, c in enumerate(curves):
+            mine = np.flatnonzero(cyl["branch"] == b)
+            if len(mine) == 0:
+                continue
+            assert np.allclose(cyl["start"][mine], c[:-1]) and (cyl["order"][mine] == depth[b]).all()
+            want = rr[b] if segment_radii else (radii[b][:-1] + radii[b][1:]) / 2
+            assert np.allclose(cyl["radius"][mine], want)
+            assert (cyl["parent"][mine[1:]] == mine[:-1]).all()
+            of_parent = np.flatnonzero(cyl["branch"] == parents[b])
+            if parents[b] < 0 or len(of_parent) == 0:
+                assert cyl["parent"][mine[0]] == -1
+            else:
+                nearest = of_parent[np.argmin(np.linalg.norm(mid[of_parent] - c[0], axis=1))]
+                assert cyl["parent"][mine[0]] == nearest

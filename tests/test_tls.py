@@ -13,7 +13,8 @@ from sylva.core.qsm import measure_qsm
 from sylva.testing.cylinders import cylinder_tree, sample_cylinder_surfaces
 from sylva.core.reconstruct import TreePoints
 from sylva.core.reconstruct.levelset import LevelSetQSM
-from sylva.core.reconstruct.wood_mesh import line_cylinders, tube_mesh
+from sylva.core.qsm import cylinders_from_curves
+from sylva.core.reconstruct.wood_mesh import tube_mesh
 
 TLS = Path(__file__).resolve().parents[2] / "shared" / "data" / "tls"
 
@@ -55,10 +56,10 @@ def test_level_set_model_fits_known_cylinders():
         assert reach < 0.15, (b, reach)
 
 
-def test_line_cylinders_parents_and_lengths():
+def test_cylinders_from_curves_parents_and_lengths():
     curves = [np.array([[0, 0, 0], [0, 0, 1], [0, 0, 2.0]]), np.array([[0, 0, 1.0], [1, 0, 1.5]])]
     radii = [np.array([0.2, 0.15, 0.1]), np.array([0.05, 0.03])]
-    cyl = line_cylinders(curves, radii, [-1, 0], [0, 1])
+    cyl = cylinders_from_curves(curves, radii, [-1, 0], [0, 1])
     assert cyl["parent"].tolist() == [-1, 0, 0] or cyl["parent"].tolist() == [-1, 0, 1]
     assert cyl["length"][:2] == pytest.approx([1, 1])
     assert cyl["radius"].tolist() == pytest.approx([0.175, 0.125, 0.04])

@@ -9,78 +9,92 @@ from scipy.spatial import cKDTree
 
 from ..circles import arc_sectors, fit_circles
 
-__all__ = ["CYLINDER_FIELDS", "cylinders_from_curves", "cylinders_from_skeleton", "surface_distance",
+__all__ = ["CYLINDER_FIELDS", "branch_depth", "cylinders_from_curves", "cylinders_from_skeleton", "surface_distance",
            "group_median", "taper_radii", "refit_radii"]
 
 CYLINDER_FIELDS = ("id", "parent", "branch", "order", "start_x", "start_y", "start_z",
                    "axis_x", "axis_y", "axis_z", "length", "radius")
 
 
+def branch_depth(bp: np.ndarray) -> np.ndarray:
+    """Depth of every branch in the branch tree (trunk 0), by pointer jumping when parents precede children."""
+    if not np.all(bp < np.arange(len(bp))):     # as the sequential rule order[b] = order[bp[b]] + 1 gives
+        order = np.zeros(len(bp), dtype=np.int64)
+        for b in range(len(bp)):
+            if bp[b] >= 0:
+                order[b] = order[bp[b]] + 1
+        return order
+    order = (bp >= 0).astype(np.int64)
+    nxt = bp.copy()
+    live = np.flatnonzero(nxt >= 0)
+    while len(live):
+        tgt = nxt[live]
+        order[live] += order[tgt]
+        nxt[live] = nxt[tgt]
+        live = live[nxt[live] >= 0]
+    return order
+
+
 def cylinders_from_curves(curves: Sequence[np.ndarray], radii: Sequence[np.ndarray],
                           branch_parent: Sequence[int], branch_order: Optional[Sequence[int]] = None,
                           segment_radii: bool = False) -> dict:
-    """A TreeQSM-like cylinder table from one sampled centre line + radii per branch.
+    """A TreeQSM-like cylinder table from one sampled centre line + radii per branch, all branches at once.
 
     Consecutive samples of branch ``b`` become cylinders of branch ``b`` (radius
     the mean of the two end radii, or, with ``segment_radii``, ``radii[b]`` holds
-    one radius per segment, ``len(curve) - 1``); a cylinder's parent is the previous
-    cylinder of its branch, and the first cylinder of a branch has as parent
-    the cylinder of its parent branch nearest its start (-1 for the trunk).
-    ``branch_order`` defaults to the depth of the branch in ``branch_parent``.
+    one radius per segment, ``len(curve) - 1``); segments shorter than 1e-9 m are
+    left out.  A cylinder's parent is the previous cylinder of its branch; the first
+    cylinder of a branch has as parent the cylinder of its parent branch whose
+    mid-point is nearest its start, when the parent branch comes before it and has
+    cylinders (-1 otherwise, and for the trunk).  ``branch_order`` defaults to the
+    depth of the branch in ``branch_parent`` (:func:`branch_depth`).
     Returns a dict of arrays keyed by :data:`CYLINDER_FIELDS` names plus
     ``start`` (n, 3) and ``axis`` (n, 3).
     """
     bp = np.asarray(branch_parent, dtype=np.int64).reshape(-1)
     nb = len(curves)
-    if branch_order is None:
-        order = np.zeros(nb, dtype=np.int64)
-        for b in range(nb):
-            if bp[b] >= 0:
-                order[b] = order[bp[b]] + 1
-    else:
-        order = np.asarray(branch_order, dtype=np.int64)
-    starts, axes, lens, rads, bids, pars = [], [], [], [], [], []
-    first_of = np.full(nb, -1, dtype=np.int64)
-    mids = {}
-    offset = 0
-    for b, (pts, r) in enumerate(zip(curves, radii)):
-        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-        r = np.asarray(r, dtype=np.float64).reshape(-1)
-        if len(pts) < 2:
-            continue
-        vec = np.diff(pts, axis=0)
-        L = np.linalg.norm(vec, axis=1)
-        ok = L > 1e-9
-        if not ok.any():
-            continue
-        s, v, L = pts[:-1][ok], vec[ok], L[ok]
-        rr = (r[:len(L)] if segment_radii else (r[:-1] + r[1:]) / 2)[ok]
-        m = len(L)
-        par = offset + np.arange(m) - 1
-        if bp[b] >= 0 and first_of[bp[b]] >= 0:
-            pids, pmid = mids[int(bp[b])]      # the parent branch's cylinders only
-            par[0] = pids[int(np.argmin(np.linalg.norm(pmid - s[0], axis=1)))]
-        else:
-            par[0] = -1
-        mids[b] = (offset + np.arange(m), s + v / 2)
-        first_of[b] = offset
-        starts.append(s)
-        axes.append(v / L[:, None])
-        lens.append(L)
-        rads.append(rr)
-        bids.append(np.full(m, b, dtype=np.int64))
-        pars.append(par)
-        offset += m
-    if not starts:
-        z3 = np.zeros((0, 3))
-        zi = np.zeros(0, dtype=np.int64)
-        zf = np.zeros(0)
+    order = branch_depth(bp[:nb]) if branch_order is None else np.asarray(branch_order, dtype=np.int64)
+    lens = np.array([len(np.asarray(c).reshape(-1, 3)) for c in curves], dtype=np.int64)
+    pts = (np.concatenate([np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in curves]) if nb
+           else np.zeros((0, 3)))
+    rad = (np.concatenate([np.asarray(r, dtype=np.float64).reshape(-1) for r in radii]) if nb
+           else np.zeros(0))
+    lid = np.repeat(np.arange(nb), lens)
+    seg = np.flatnonzero(lid[:-1] == lid[1:]) if len(pts) > 1 else np.zeros(0, np.int64)
+    vec = pts[seg + 1] - pts[seg]
+    L = np.linalg.norm(vec, axis=1)
+    ok = L > 1e-9
+    seg, vec, L = seg[ok], vec[ok], L[ok]
+    br = lid[seg]
+    n = len(seg)
+    if n == 0:
+        z3, zi, zf = np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0)
         return dict(id=zi, parent=zi, branch=zi, order=zi, start=z3, axis=z3, length=zf, radius=zf)
-    start = np.concatenate(starts)
-    branch = np.concatenate(bids)
-    return dict(id=np.arange(len(start), dtype=np.int64), parent=np.concatenate(pars).astype(np.int64),
-                branch=branch, order=order[branch], start=start, axis=np.concatenate(axes),
-                length=np.concatenate(lens), radius=np.concatenate(rads))
+    if segment_radii:       # radii[b][k]: the k-th segment of branch b (its k-th sample onwards)
+        r_off = np.r_[0, np.cumsum([len(np.asarray(r).reshape(-1)) for r in radii])]
+        radius = rad[r_off[br] + seg - np.r_[0, np.cumsum(lens)][br]]
+    else:
+        radius = (rad[seg] + rad[seg + 1]) / 2
+    start = pts[seg]
+    par = np.arange(n) - 1
+    first = np.r_[True, br[1:] != br[:-1]]
+    par[first] = -1
+    fi = np.flatnonzero(first)
+    want = np.where(bp[br[fi]] < br[fi], bp[br[fi]], -1)       # a parent branch that comes before
+    mid = start + vec / 2
+    kq = min(16, n)
+    _, cand = cKDTree(mid).query(start[fi], k=kq)
+    cand = np.asarray(cand).reshape(len(fi), kq)
+    hit = br[cand] == want[:, None]
+    j = np.argmax(hit, axis=1)
+    got = hit[np.arange(len(fi)), j]
+    par[fi] = np.where(got & (want >= 0), cand[np.arange(len(fi)), j], -1)
+    for i, w in zip(fi[~got & (want >= 0)].tolist(), want[~got & (want >= 0)].tolist()):
+        pc = np.flatnonzero(br == w)        # rare: the parent's nearest cylinders are farther than 16
+        if len(pc):
+            par[i] = pc[np.argmin(np.linalg.norm(mid[pc] - start[i], axis=1))]
+    return dict(id=np.arange(n, dtype=np.int64), parent=par.astype(np.int64), branch=br.astype(np.int64),
+                order=order[br], start=start, axis=vec / L[:, None], length=L, radius=radius)
 
 
 def cylinders_from_skeleton(skeleton, radii: Optional[np.ndarray] = None, branch_set=None) -> tuple:

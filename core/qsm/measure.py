@@ -9,31 +9,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..measure import DbhRule, fit_stem_circle
-from .cylinders import cylinders_from_curves
+from .cylinders import branch_depth, cylinders_from_curves
 
 __all__ = ["BRANCH_FIELDS", "branch_table_arrays", "QSM", "measure_qsm", "skeleton_qsms"]
 
 BRANCH_FIELDS = ("id", "parent", "order", "n_cylinders", "length", "base_diameter", "volume",
                  "angle_deg", "base_height")
-
-
-def _branch_depth(bp: np.ndarray) -> np.ndarray:
-    """Depth of every branch in the branch tree (trunk 0), by pointer jumping when parents precede children."""
-    if not np.all(bp < np.arange(len(bp))):     # as the sequential rule order[b] = order[bp[b]] + 1 gives
-        order = np.zeros(len(bp), dtype=np.int64)
-        for b in range(len(bp)):
-            if bp[b] >= 0:
-                order[b] = order[bp[b]] + 1
-        return order
-    order = (bp >= 0).astype(np.int64)
-    nxt = bp.copy()
-    live = np.flatnonzero(nxt >= 0)
-    while len(live):
-        tgt = nxt[live]
-        order[live] += order[tgt]
-        nxt[live] = nxt[tgt]
-        live = live[nxt[live] >= 0]
-    return order
 
 
 def branch_table_arrays(cyl: dict, branch_parent: Sequence[int]) -> dict:
@@ -66,7 +47,7 @@ def branch_table_arrays(cyl: dict, branch_parent: Sequence[int]) -> dict:
         ax = np.asarray(cyl["axis"], dtype=np.float64)
         c = np.matmul(ax[fc][:, None, :], ax[p][:, :, None])[:, 0, 0]
         angle[b] = np.degrees(np.arccos(np.clip(c, -1, 1)))
-    order = _branch_depth(bp)
+    order = branch_depth(bp)
     return dict(id=np.arange(nb, dtype=np.int64), parent=bp, order=order, n_cylinders=ncyl.astype(np.int64),
                 length=length, base_diameter=base_d, volume=vol, angle_deg=angle, base_height=base_h)
 

@@ -62,9 +62,9 @@ from ..circles import arc_sectors, fit_circles
 from ..errors import InputError
 from ..jit import njit
 from ..progress import CancelCheck, Progress, check, report
-from ..qsm import group_median
+from ..qsm import cylinders_from_curves, group_median
 from .model import Reconstruction, Skeleton, TreePoints, screen
-from .wood_mesh import fitted_mesh_lines, line_cylinders, simplify_lines
+from .wood_mesh import fitted_mesh_lines, simplify_lines
 
 __all__ = ["LevelSetQSM", "level_set_nodes"]
 
@@ -124,7 +124,6 @@ class LevelSetQSM:
             raise InputError("LevelSetQSM: k >= 2, sides >= 3, twig_sides >= 3, bin_m >= 0, min_bin_m > 0")
 
     def model(self, tree: TreePoints, progress: Progress = None, cancelled: CancelCheck = None):
-        from ..qsm import cylinders_from_curves
         from .kmeans import DenseModel
 
         t0 = time.perf_counter()
@@ -164,7 +163,7 @@ class LevelSetQSM:
                                                         self.thick_m, self.cover_m, self.cover_share)
         curves, radii, bparent, border = prune_stubs(curves, radii, bparent, border, 3 * nodes["bin_m"])
         curves, radii = simplify_lines(curves, radii)
-        cyl = line_cylinders(curves, radii, bparent, border)
+        cyl = cylinders_from_curves(curves, radii, bparent, border)
         stats = {"n_points": int(len(tree.xyz)), "n_nodes": int(len(skel)), "n_branches": len(curves),
                  "bin_m": nodes["bin_m"], "spacing_k_m": nodes["spacing"],
                  "n_circle_fits": int(nodes["fitted"].sum()), "t_total_s": time.perf_counter() - t0}

@@ -2,7 +2,7 @@
 its centre lines (:func:`fitted_mesh_lines`: the stem's fitted tubes and the fine branches beside them),
 tubes no point is nearest to left out (:func:`prune_redundant`), centre lines simplified
 (:func:`simplify_lines`), the tubes swept with the fewest sides their chord tolerance allows
-(:func:`tube_mesh`), and the TreeQSM-like cylinder table of the lines (:func:`line_cylinders`).
+(:func:`tube_mesh`).
 All Sylva, not in the papers (see the levelset module docstring); ``benchmarks/dense.py`` measures it.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["fitted_mesh_lines", "prune_redundant", "simplify_lines", "ROUND_RADIUS_M", "ROUND_SIDES",
-           "polygon_sides", "mean_radius_factor", "tube_mesh", "line_cylinders"]
+           "polygon_sides", "mean_radius_factor", "tube_mesh"]
 
 
 def _line_samples(curves, radii, step_m: float = 0.01):
@@ -272,48 +272,3 @@ def tube_mesh(curves, radii, sides: int = 10, twig_sides: int = 6, twig_radius_m
     if not vs:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     return np.vstack(vs), np.vstack(fs)
-
-
-def line_cylinders(curves, radii, branch_parent, branch_order) -> dict:
-    """The TreeQSM-like cylinder table of the centre lines (as :func:`sylva.core.qsm.cylinders_from_curves`,
-    vectorised): a cylinder per segment, radius the mean of its two ends; the first cylinder of a branch
-    has as parent the parent branch's cylinder nearest its start."""
-    nb = len(curves)
-    lens = np.array([len(c) for c in curves], dtype=np.int64)
-    pts = np.concatenate(curves) if nb else np.zeros((0, 3))
-    rad = np.concatenate(radii) if nb else np.zeros(0)
-    off = np.r_[0, np.cumsum(lens)]
-    lid = np.repeat(np.arange(nb), lens)
-    seg = np.flatnonzero(lid[:-1] == lid[1:]) if len(pts) > 1 else np.zeros(0, np.int64)
-    vec = pts[seg + 1] - pts[seg]
-    L = np.linalg.norm(vec, axis=1)
-    ok = L > 1e-9
-    seg, vec, L = seg[ok], vec[ok], L[ok]
-    br = lid[seg]
-    n = len(seg)
-    start = pts[seg]
-    par = np.arange(n) - 1
-    first = np.r_[True, br[1:] != br[:-1]] if n else np.zeros(0, bool)
-    par[first] = -1
-    bp = np.asarray(branch_parent, dtype=np.int64)
-    fi = np.flatnonzero(first)
-    if len(fi):
-        mid = start + vec / 2
-        tree = cKDTree(mid) if n else None
-        # nearest cylinder of the parent branch to each branch's start
-        kq = min(16, n)
-        _, cand = tree.query(start[fi], k=kq)
-        cand = np.asarray(cand).reshape(len(fi), kq)
-        want = bp[br[fi]]
-        hit = br[cand] == want[:, None]
-        j = np.argmax(hit, axis=1)
-        got = hit[np.arange(len(fi)), j]
-        par[fi] = np.where(got & (want >= 0), cand[np.arange(len(fi)), j], -1)
-        for i in fi[~got & (want >= 0)]:          # rare: the parent's nearest cylinders are further away
-            pc = np.flatnonzero(br == bp[br[i]])
-            if len(pc):
-                par[i] = pc[np.argmin(np.linalg.norm(mid[pc] - start[i], axis=1))]
-    return dict(id=np.arange(n, dtype=np.int64), parent=par.astype(np.int64), branch=br.astype(np.int64),
-                order=np.asarray(branch_order, dtype=np.int64)[br] if n else np.zeros(0, np.int64),
-                start=start, axis=vec / L[:, None] if n else np.zeros((0, 3)), length=L,
-                radius=(rad[seg] + rad[seg + 1]) / 2)
