@@ -298,7 +298,7 @@ def level_set_nodes(xyz: np.ndarray, opt: LevelSetQSM = LevelSetQSM(), width=Non
     sub = sparse.csr_matrix((np.ones(same.sum()), (rows[same], cols[same])), shape=(n, n))
     _, comp = csgraph.connected_components(sub, directed=False)
     comp = np.where(reach, comp, -1)
-    comp = _merge_split_sections(xyz, comp, b, dist, pred)
+    comp = _merge_split_sections(xyz, comp, b, dist)
     # relabel nodes by their smallest geodesic distance: parents (smaller distance) come first
     ok = comp >= 0
     ids, comp_r = np.unique(comp[ok], return_inverse=True)
@@ -380,7 +380,7 @@ def _group_argmin(values, labels, n):
     return out
 
 
-def _merge_split_sections(xyz, comp, b, dist, pred):
+def _merge_split_sections(xyz, comp, b, dist):
     """Merge pieces of one bin whose centres are closer than the sum of their spreads (one cross-section
     seen in parts; Sylva, not in the papers)."""
     ok = comp >= 0
@@ -391,8 +391,6 @@ def _merge_split_sections(xyz, comp, b, dist, pred):
     lab = np.full(len(comp), -1, dtype=np.int64)
     lab[ok] = c
     first = _group_argmin(dist, lab, m)
-    p = pred[first]
-    parent = np.where(p >= 0, lab[np.maximum(p, 0)], -1)
     cnt = np.bincount(c, minlength=m).astype(np.float64)
     cen = np.stack([np.bincount(c, weights=xyz[ok, k], minlength=m) for k in range(3)], 1) / cnt[:, None]
     spread = np.zeros(m)
@@ -403,25 +401,18 @@ def _merge_split_sections(xyz, comp, b, dist, pred):
     # narrower than its point spacing falls apart into arcs that each follow their own arc below)
     grp = np.r_[True, nb[key][1:] != nb[key][:-1]]
     starts = np.flatnonzero(grp)
-    ends = np.r_[starts[1:], m]
-    uf = np.arange(m)
-
-    def find(x):
-        while uf[x] != x:
-            uf[x] = uf[uf[x]]
-            x = uf[x]
-        return x
-
-    for s, e in zip(starts[ends - starts > 1], ends[ends - starts > 1]):
-        mem = key[s:e]
-        d = np.linalg.norm(cen[mem][:, None] - cen[mem][None], axis=2)
-        close = d < (spread[mem][:, None] + spread[mem][None])
-        ii, jj = np.nonzero(np.triu(close, 1))
-        for i, j in zip(ii, jj):
-            ri, rj = find(mem[i]), find(mem[j])
-            if ri != rj:
-                uf[max(ri, rj)] = min(ri, rj)
-    roots = np.array([find(i) for i in range(m)])
+    end_of = np.r_[starts[1:], m][np.cumsum(grp) - 1]       # per position in key order: its group's end
+    after = end_of - np.arange(m) - 1                        # the pieces after it in its group
+    i = np.repeat(np.arange(m), after)
+    j = i + 1 + np.arange(len(i)) - np.repeat(np.cumsum(after) - after, after)
+    a, b2 = key[i], key[j]
+    close = np.linalg.norm(cen[a] - cen[b2], axis=1) < spread[a] + spread[b2]
+    # joined pieces: connected components of the close pairs, each named by its smallest piece
+    _, comp_of = csgraph.connected_components(
+        sparse.csr_matrix((np.ones(int(close.sum())), (a[close], b2[close])), shape=(m, m)), directed=False)
+    first_piece = np.full(m, m, dtype=np.int64)
+    np.minimum.at(first_piece, comp_of, np.arange(m))
+    roots = first_piece[comp_of]
     out = comp.copy()
     out[ok] = roots[c]
     return out
