@@ -22,7 +22,7 @@ same measure, built unmodified on this machine) are printed beside them.
 
 Default options (LOD 0) on this machine, one run: tree1 / tree7 / tree13 points -> surface 0.85 / 0.61 /
 2.11 cm (p95 3.13 / 2.12 / 8.26), surface -> points 3.27 / 2.43 / 13.21 cm, 14,274 / 12,257 / 13,235
-vertices, 0.38 / 0.50 / 0.33 s in-process on a machine shared with other work (AdTree 0.45 / 0.77 / 0.29 s).
+vertices, 0.34 / 0.41 / 0.27 s in-process (AdTree 0.45 / 0.77 / 0.29 s).
 Before the LOD 0 chord tolerance of 0.45 point spacings and the fine level's nodes of at least 3 points
 along a twig: 0.83 / 0.63 / 2.38 cm, 2.87 / 2.30 / 11.29 cm, 19,126 / 14,504 / 18,824 vertices; before the
 chord-tolerance polygons, fan ends, pointed twigs, looser simplification and pruning of tubes no point is
