@@ -527,10 +527,10 @@ def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
 
     The chains are those of :func:`~sylva.core.geometry.branches` (``ModelledTree.branches`` when
     set); the chains of all trees are converted to CRS units in one call and encoded in one
-    vectorised pass (the same bytes as :func:`~sylva.core.table.multilinestring_zm_wkb`).
+    vectorised pass (:func:`~sylva.core.table.multilinestring_zm_wkbs`).
     """
     from .geometry import branches
-    from .table import VectorTable
+    from .table import VectorTable, multilinestring_zm_wkbs
 
     bsets = [t.branches if t.branches is not None else branches(t.skeleton, t.skeleton.radius) for t in trees]
     ids = [t.tree_id for t in trees]
@@ -550,60 +550,12 @@ def skeleton_table(trees: List[ModelledTree], cloud: PointCloud, crs=None):
         radius = np.concatenate([t.skeleton.radius for t in trees])[nodes]
         part_len = lens[real]
         coords = np.column_stack([cloud.from_local(local.reshape(-1, 3)), radius])
-        wkb = _multilinestring_zm_wkbs(coords, part_len.astype(np.int64), n_chains)
+        wkb = multilinestring_zm_wkbs(coords, part_len.astype(np.int64), n_chains)
     else:
         wkb = []
     return VectorTable("skeletons", "line", np.array(wkb, dtype=object),
                        {"tree_id": np.array(ids, dtype=np.int64), "n_chains": n_chains},
                        crs if crs is not None else cloud.crs, has_m=True)
-
-
-_WKB_HEADER = np.dtype([("order", "u1"), ("type", "<u4"), ("count", "<u4")])  # packed: 9 bytes
-
-
-def _multilinestring_zm_wkbs(coords: np.ndarray, part_len: np.ndarray, n_parts: np.ndarray) -> list:
-    """ISO WKB MultiLineString ZM per feature (little endian, types 3005 / 3002), vectorised.
-
-    ``coords`` (n, 4) x, y, z, m of all parts of all features in order; ``part_len`` (p,) points
-    per part; ``n_parts`` (f,) parts per feature.  Byte for byte what
-    :func:`sylva.core.table.multilinestring_zm_wkb` gives per feature.
-    """
-    nf, npart = len(n_parts), len(part_len)
-    feat_of_part = np.repeat(np.arange(nf), n_parts)
-    # items in buffer order: feature header, then its parts (header + coordinates)
-    part_item = feat_of_part + 1 + np.arange(npart)
-    feat_item = np.arange(nf) + np.r_[0, np.cumsum(n_parts)[:-1]]
-    size = np.empty(nf + npart, dtype=np.int64)
-    size[feat_item] = 9
-    size[part_item] = 9 + 32 * part_len
-    start = np.r_[0, np.cumsum(size)]
-    hdr = np.empty(nf + npart, dtype=_WKB_HEADER)
-    hdr["order"] = 1
-    hdr["type"][feat_item], hdr["count"][feat_item] = 3005, n_parts
-    hdr["type"][part_item], hdr["count"][part_item] = 3002, part_len
-    body = np.zeros(nf + npart, dtype=np.int64)
-    body[part_item] = 32 * part_len
-    buf = _wkb_pack(hdr.view(np.uint8).reshape(-1, 9), body,
-                    np.ascontiguousarray(coords, dtype="<f8").view(np.uint8).reshape(-1), int(start[-1]))
-    ends = start[feat_item + 1 + n_parts].tolist()
-    begins = start[feat_item].tolist()
-    return [buf[a:b].tobytes() for a, b in zip(begins, ends)]
-
-
-@njit
-def _wkb_pack(headers, body, data, size):
-    """The WKB buffer: every item's 9 header bytes, each followed by its next ``body`` bytes of ``data``."""
-    buf = np.empty(size, np.uint8)
-    pos = 0
-    src = 0
-    for it in range(headers.shape[0]):
-        buf[pos:pos + 9] = headers[it]
-        pos += 9
-        n = body[it]
-        buf[pos:pos + n] = data[src:src + n]
-        pos += n
-        src += n
-    return buf
 
 
 def qsm_tables(trees: List[ModelledTree], cloud: PointCloud, crs=None):

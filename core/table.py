@@ -16,6 +16,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from .jit import njit
+
 GEOMETRY_TYPES = ("point", "line", "polygon", "none")
 
 
@@ -73,20 +75,61 @@ def python_values(values: np.ndarray, kind: str) -> list:
     return [None if v is None else str(v) for v in arr]
 
 
-def multilinestring_zm_wkb(parts) -> bytes:
-    """ISO WKB of a MultiLineString ZM from a list of (k, 4) arrays of x, y, z, m.
+_WKB_HEADER = np.dtype([("order", "u1"), ("type", "<u4"), ("count", "<u4")])  # packed: 9 bytes
 
-    Shapely has no M coordinate; Sylva's skeleton lines carry the branch
-    radius as M, so they are encoded here (little endian, types 3005 / 3002).
+
+def multilinestring_zm_wkbs(coords: np.ndarray, part_len: np.ndarray, n_parts: np.ndarray) -> list:
+    """ISO WKB MultiLineString ZM per feature (little endian, types 3005 / 3002), vectorised.
+
+    ``coords`` (n, 4) x, y, z, m of all parts of all features in order; ``part_len`` (p,) points
+    per part; ``n_parts`` (f,) parts per feature.  Shapely has no M coordinate; Sylva's skeleton lines
+    carry the branch radius as M, so they are encoded here.
     """
-    import struct
+    nf, npart = len(n_parts), len(part_len)
+    feat_of_part = np.repeat(np.arange(nf), n_parts)
+    # items in buffer order: feature header, then its parts (header + coordinates)
+    part_item = feat_of_part + 1 + np.arange(npart)
+    feat_item = np.arange(nf) + np.r_[0, np.cumsum(n_parts)[:-1]]
+    size = np.empty(nf + npart, dtype=np.int64)
+    size[feat_item] = 9
+    size[part_item] = 9 + 32 * part_len
+    start = np.r_[0, np.cumsum(size)]
+    hdr = np.empty(nf + npart, dtype=_WKB_HEADER)
+    hdr["order"] = 1
+    hdr["type"][feat_item], hdr["count"][feat_item] = 3005, n_parts
+    hdr["type"][part_item], hdr["count"][part_item] = 3002, part_len
+    body = np.zeros(nf + npart, dtype=np.int64)
+    body[part_item] = 32 * part_len
+    buf = _wkb_pack(hdr.view(np.uint8).reshape(-1, 9), body,
+                    np.ascontiguousarray(coords, dtype="<f8").view(np.uint8).reshape(-1), int(start[-1]))
+    ends = start[feat_item + 1 + n_parts].tolist()
+    begins = start[feat_item].tolist()
+    return [buf[a:b].tobytes() for a, b in zip(begins, ends)]
 
-    chunks = [struct.pack("<BII", 1, 3005, len(parts))]
-    for part in parts:
-        coords = np.ascontiguousarray(part, dtype="<f8").reshape(-1, 4)
-        chunks.append(struct.pack("<BII", 1, 3002, len(coords)))
-        chunks.append(coords.tobytes())
-    return b"".join(chunks)
+
+@njit
+def _wkb_pack(headers, body, data, size):
+    """The WKB buffer: every item's 9 header bytes, each followed by its next ``body`` bytes of ``data``."""
+    buf = np.empty(size, np.uint8)
+    pos = 0
+    src = 0
+    for it in range(headers.shape[0]):
+        buf[pos:pos + 9] = headers[it]
+        pos += 9
+        n = body[it]
+        buf[pos:pos + n] = data[src:src + n]
+        pos += n
+        src += n
+    return buf
+
+
+def multilinestring_zm_wkb(parts) -> bytes:
+    """ISO WKB of one MultiLineString ZM from a list of (k, 4) arrays of x, y, z, m
+    (:func:`multilinestring_zm_wkbs` of one feature)."""
+    parts = [np.asarray(p, dtype=np.float64).reshape(-1, 4) for p in parts]
+    coords = np.concatenate(parts) if parts else np.zeros((0, 4))
+    return multilinestring_zm_wkbs(coords, np.array([len(p) for p in parts], dtype=np.int64),
+                                   np.array([len(parts)], dtype=np.int64))[0]
 
 
 #: One ISO WKB Point Z (little endian): byte order, type 1001, x, y, z.

@@ -664,3 +664,28 @@ def test_every_geopackage_of_the_sample_conforms(sample_laz, tmp_path, qgis_app)
         layer = QgsVectorLayer(f"{path}|layername=crowns_3d", "c", "ogr")
         assert layer.isValid() and layer.loadDefaultStyle()[1] and layer.renderer().type() == "nullSymbol"
         assert layer.renderer3D() is not None and layer.renderer3D().type() == "vector"
+
+
+def test_measured_multilines_of_many_features_are_what_ogr_reads():
+    """multilinestring_zm_wkbs (every skeleton of a tile in one pass) against GDAL's own WKB reader."""
+    from sylva.core.table import multilinestring_zm_wkbs
+
+    rng = np.random.default_rng(7)
+    n_parts = np.array([2, 0, 1, 3])
+    part_len = rng.integers(2, 6, int(n_parts.sum()))
+    coords = rng.uniform(-50, 50, (int(part_len.sum()), 4))
+    wkbs = multilinestring_zm_wkbs(coords, part_len, n_parts)
+    assert len(wkbs) == len(n_parts)
+    at = 0
+    part = 0
+    for wkb, k in zip(wkbs, n_parts):
+        g = ogr.CreateGeometryFromWkb(wkb)
+        assert g is not None and ogr.GeometryTypeToName(g.GetGeometryType()) == "3D Measured Multi Line String"
+        assert g.GetGeometryCount() == k
+        for i in range(k):
+            line = g.GetGeometryRef(i)
+            got = np.array([line.GetPointZM(j) for j in range(line.GetPointCount())])
+            want = coords[at:at + part_len[part]]
+            assert np.array_equal(got, want)
+            at += part_len[part]
+            part += 1
