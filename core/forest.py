@@ -334,7 +334,7 @@ def _fitted_wood(dense, base_local: np.ndarray, lod: int):
                      else (dense.mesh_curves, dense.mesh_radii))
     tolerance = {0: 0.008, 1: 0.004}.get(int(lod), 0.002)
     if int(lod) == 0:
-        tolerance = max(tolerance, float(getattr(dense, "mesh_chord_m", 0.0)))
+        tolerance = max(tolerance, float(dense.mesh_chord_m))
     v, f = tube_mesh(curves, radii, sides=sides, tolerance_m=tolerance,
                      match=True, pointed_m=0.008)
     return trimesh.Trimesh(v - base_local, f, process=False)
@@ -517,7 +517,7 @@ def _mesh_and_leaf(out: List[ModelledTree], forest, options: ModelOptions, cance
             chosen[which] = True
             pick = chosen[tip_tree]
             grown = leaves_at_tips(shifted, radii, sect[pick], np.searchsorted(which, tip_tree[pick]),
-                                 off[which], method, [seeds[k] for k in which])
+                                   off[which], method, [seeds[k] for k in which])
             for k, leaves in zip(which.tolist(), grown):
                 out[k].leaves = leaves
 

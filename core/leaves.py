@@ -403,7 +403,7 @@ def grow_leaves_batch(skeletons, method: Union[LeafCards, NeedleClusters] = Leaf
     nodes_all, _, node_off = join_forest(skeletons)
     sect_all = np.concatenate(sects) + np.repeat(node_off[:-1], [len(x) for x in sects])[:, None]
     return leaves_at_tips(nodes_all, np.concatenate(rad_all), sect_all, np.concatenate(tip_tree), node_off[:-1],
-                        method, seeds)
+                          method, seeds)
 
 
 def _leaf_sizes(method: Union[LeafCards, NeedleClusters]):
@@ -420,7 +420,7 @@ def _leaf_sizes(method: Union[LeafCards, NeedleClusters]):
 
 
 def leaves_at_tips(nodes: np.ndarray, radii: np.ndarray, sect_all: np.ndarray, tip_tree: np.ndarray,
-                 node_start: np.ndarray, method: Union[LeafCards, NeedleClusters], seeds) -> list:
+                   node_start: np.ndarray, method: Union[LeafCards, NeedleClusters], seeds) -> list:
     """The leaves of :func:`grow_leaves_batch` from the trees' tip sections, one vectorised pass for all tips.
 
     ``nodes`` / ``radii`` the nodes of all trees (a forest), ``sect_all`` (t, K + 1) the tip sections
