@@ -36,13 +36,13 @@ Two scales (Sylva): a first pass with bins of ``bin_spacing`` point spacings giv
 radius of its piece; the structure (skeleton, branches, QSM) is then binned in widths of ``adaptive``
 times that radius (wide bins keep a thick stem's cross-section whole, narrow ones follow twigs), and its
 stubs (leaf branches that stay within three parent radii + three bins of the parent, :func:`prune_stubs`)
-are dropped; the wood mesh (:mod:`.wood_mesh`, :func:`~.wood_mesh.fitted_mesh_lines`) is one tube per run of the structure's circle-fitted
-cross-sections at least ``thick_m`` thick, plus the branches of a third pass with narrow bins everywhere
-(``fine_spacing`` point spacings, at least ``min_bin_m``; along a twig, nodes of fewer than ``fine_min_points``
-points joined to their parent) whose points those tubes do not cover; tubes no
-point is nearest to are left out (:func:`~.wood_mesh.prune_redundant`), and every tube gets the fewest polygon sides
-whose chord error is within a tolerance, its polygon as far from the axis on average as the fitted circle
-(:func:`~.wood_mesh.tube_mesh`).
+are dropped; the wood mesh (:mod:`.wood_mesh`, :func:`~.wood_mesh.fitted_mesh_lines`) is one tube per
+run of the structure's circle-fitted cross-sections at least ``thick_m`` thick, plus the branches of a
+third pass with narrow bins everywhere (``fine_spacing`` point spacings, at least ``min_bin_m``; along a
+twig, nodes of fewer than ``fine_min_points`` points joined to their parent) whose points those tubes do
+not cover; tubes no point is nearest to are left out (:func:`~.wood_mesh.prune_redundant`), and every tube
+gets the fewest polygon sides whose chord error is within a tolerance, its polygon as far from the axis on
+average as the fitted circle (:func:`~.wood_mesh.tube_mesh`).
 
 Everything is vectorised (scipy's kd-tree, Dijkstra and connected
 components; bincount sums): ~0.1–0.3 s for 10,000–20,000 points.
@@ -83,9 +83,10 @@ class LevelSetQSM:
     points are left out (isolated noise); ``sides`` of the tubes (thick ones: ``sides``, twigs
     under 3 cm radius: ``twig_sides``); ``max_points`` larger trees are thinned to a voxel grid
     first; ``thick_m``, ``cover_m``, ``cover_share``: the wood mesh's fitted stem tubes and the fine
-    branches kept beside them (:func:`fitted_mesh_lines`); ``fine_min_points`` a node of the fine level
-    with one child and fewer points joins its parent (:func:`level_set_nodes` ``min_points``); ``chord_spacing`` the LOD 0 wood mesh's
-    polygons may lie off the fitted circle by this many point spacings (the median distance to the 8th
+    branches kept beside them (:func:`~.wood_mesh.fitted_mesh_lines`); ``fine_min_points`` a node of the
+    fine level with one child and fewer points joins its parent (:func:`level_set_nodes` ``min_points``);
+    ``chord_spacing`` the LOD 0 wood mesh's polygons may lie off the fitted circle by this many point
+    spacings (the median distance to the 8th
     neighbour) when that exceeds the LOD's own tolerance (:attr:`DenseModel.mesh_chord_m`; Sylva, not in
     the papers: a polygon finer than the scan's spacing shows no more of what was scanned; TLS trees
     1 / 7 / 13: 2.5 / 1.5 / 8.5 cm instead of 8 mm, 19,122 / 14,511 / 18,824 -> 15,525 / 12,747 / 12,952
@@ -153,7 +154,8 @@ class LevelSetQSM:
             width = np.clip(self.adaptive * r, fine, max(coarse["bin_m"], fine))
             nodes = level_set_nodes(xyz, self, width=width, prep=coarse["prep"])
             nodes["bin_m"] = fine
-            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"], min_points=self.fine_min_points)
+            fn = level_set_nodes(xyz, replace(self, bin_m=fine), prep=coarse["prep"],
+                                 min_points=self.fine_min_points)
         report(progress, 0.6, "level sets")
         check(cancelled)
         structure = _branches(nodes, ground_z)
