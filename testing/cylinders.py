@@ -28,9 +28,7 @@ def cylinder_tree(segments: Sequence[dict]) -> dict:
         rr = np.linspace(r0, r1, n + 1)
         radii.append(rr)
         parents.append(int(s.get("parent", -1)))
-    cyl = cylinders_from_curves(curves, radii, parents)
-    # exact per-cylinder radii: midpoint of the taper (the mean of end radii)
-    return cyl
+    return cylinders_from_curves(curves, radii, parents)      # a cylinder's radius: the mean of its ends
 
 
 def sample_cylinder_surfaces(cyl: dict, spacing_m: float = 0.01, noise_m: float = 0.0, seed: int = 0,

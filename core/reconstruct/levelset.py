@@ -86,13 +86,11 @@ class LevelSetQSM:
     branches kept beside them (:func:`~.wood_mesh.fitted_mesh_lines`); ``fine_min_points`` a node of the
     fine level with one child and fewer points joins its parent (:func:`level_set_nodes` ``min_points``);
     ``chord_spacing`` the LOD 0 wood mesh's polygons may lie off the fitted circle by this many point
-    spacings (the median distance to the 8th
-    neighbour) when that exceeds the LOD's own tolerance (:attr:`DenseModel.mesh_chord_m`; Sylva, not in
-    the papers: a polygon finer than the scan's spacing shows no more of what was scanned; TLS trees
-    1 / 7 / 13: 2.5 / 1.5 / 8.5 cm instead of 8 mm, 19,122 / 14,511 / 18,824 -> 15,525 / 12,747 / 12,952
-    vertices and points -> surface 0.83 / 0.63 / 2.38 -> 0.80 / 0.61 / 2.32 cm, surface -> points about
-    unchanged, the polygon's mean distance to the axis being the circle's; the synthetic trees, 2.4 cm
-    spacing, get 1.1 cm).
+    spacings (the median distance to the 8th neighbour) when that exceeds the LOD's own tolerance
+    (:attr:`DenseModel.mesh_chord_m`; Sylva, not in the papers: a polygon finer than the scan's spacing
+    shows no more of what was scanned; TLS trees 1 / 7 / 13: 2.5 / 1.5 / 8.5 cm instead of 8 mm; this
+    step alone: 19,122 / 14,511 / 18,824 -> 15,525 / 12,747 / 12,952 vertices, points -> surface
+    0.83 / 0.63 / 2.38 -> 0.80 / 0.61 / 2.32 cm; the synthetic trees, 2.4 cm spacing, get 1.1 cm).
     """
 
     k: int = 10
