@@ -347,12 +347,10 @@ def test_shared_export_cache_changes_no_byte(tmp_path, monkeypatch):
 
 # =========================================================================== compiled / forest passes
 #
-# The per-tree and lexsort / pointer-jumping numpy code that model_trees, the geometry, the leaves
-# and the skeleton table used before the forest passes and kernels (core/jit.py) replaced it, kept
-# verbatim (docstrings shortened) as the reference.  Every output is compared bit for bit (bytes,
-# so signed zeros too) on this machine, on generated skeletons and clouds that reach every branch:
-# exact bend ties, zero-length segments, vertical twigs, lone roots, pruned branches, trees of
-# fewer than 3 nodes, crowns that are and are not conical, NaN inputs for the kernels' NaN rules.
+# The forest passes and kernels (core/jit.py) against the single-tree path and numpy, on generated
+# skeletons and clouds that reach every branch: exact bend ties, zero-length segments, vertical twigs,
+# lone roots, pruned branches, trees of fewer than 3 nodes, crowns that are and are not conical, NaN
+# inputs for the kernels' NaN rules; outputs compared bit for bit (bytes, so signed zeros too).
 
 _BATCH_NODES = F._BATCH_NODES
 reconstruct_tree = None          # set by the tests (the synthetic skeletons)

@@ -1,8 +1,6 @@
 """GeoPackages Sylva writes: GDAL's validator passes, R-trees exist and are used, QGIS styles are stored,
-several outputs share a file, any layer name is safe, and the rows are those of the writer before GDAL.
-
-The old hand-written writer (rows by sqlite, no R-tree, geometry columns declared BLOB) is kept below as the
-reference for the rows (``_reference_write_gpkg``, from git history): the new files must hold the same rows.
+several outputs share a file, any layer name is safe, and every row holds what its table says, as GDAL/OGR
+reads it back (the hand-written writer before GDAL that was the reference is in git history).
 """
 import sqlite3
 import struct
@@ -77,29 +75,6 @@ def check_rtrees(path):
             assert got == want
 
 
-def user_rows(path, column_order_of=None):
-    """Every user table's rows (columns in the order of ``column_order_of``'s table, if given) and the
-    extents and srs of gpkg_contents, not the schema: what the old and new writers must agree on."""
-    out = {}
-    other = sqlite3.connect(column_order_of) if column_order_of else None
-    with closing(sqlite3.connect(path)) as con:
-        tables = [r[0] for r in con.execute("SELECT table_name FROM gpkg_contents WHERE table_name != 'layer_styles' "
-                                            "ORDER BY table_name")]
-        for t in tables:
-            q = '"' + t.replace('"', '""') + '"'
-            cols = [r[1] for r in (other or con).execute(f"PRAGMA table_info({q})")]
-            sel = ", ".join(f'"{c}", typeof("{c}")' for c in cols)
-            out[t] = con.execute(f"SELECT {sel} FROM {q} ORDER BY fid").fetchall()
-        out["gpkg_contents"] = con.execute(
-            "SELECT table_name, data_type, identifier, min_x, min_y, max_x, max_y, "
-            "CASE WHEN data_type = 'attributes' THEN NULL ELSE srs_id END FROM gpkg_contents "
-            "WHERE table_name != 'layer_styles' ORDER BY table_name").fetchall()
-        out["gpkg_geometry_columns"] = con.execute("SELECT * FROM gpkg_geometry_columns ORDER BY table_name").fetchall()
-    if other:
-        other.close()
-    return out
-
-
 def tables():
     rng = np.random.default_rng(1)
     crs = pyproj.CRS("EPSG:32632")
@@ -120,131 +95,91 @@ def tables():
 
 
 
-# --------------------------------------------------------------------------- the old writer (reference)
+# --------------------------------------------------------------------------- what a row must hold
 
 _GEOMETRY_NAMES = {"point": "POINT", "line": "MULTILINESTRING", "polygon": "MULTIPOLYGON"}
 
 
-def _srs_row(crs):
-    if crs is None:
-        return -1, "Undefined cartesian SRS", "NONE", -1, "undefined"
-    wkt = crs.to_wkt("WKT1_GDAL") or crs.to_wkt()
-    epsg = crs.to_epsg()
-    if epsg:
-        return epsg, crs.name, "EPSG", epsg, wkt
-    return 100000, crs.name, "NONE", 100000, wkt
+def _promoted(geometry, geometry_type):
+    """A line or polygon written to its layer's multi type (GeoPackage Req 32), as OGR reads it back."""
+    multi = {"line": ("LineString", shapely.MultiLineString), "polygon": ("Polygon", shapely.MultiPolygon)}
+    if geometry is not None and geometry_type in multi and geometry.geom_type == multi[geometry_type][0]:
+        return multi[geometry_type][1]([geometry])
+    return geometry
 
 
-def _header(srs_id: int, empty: bool) -> bytes:
-    flags = 0b00000001 | (0b00010000 if empty else 0)  # little endian, no envelope
-    return b"GP" + bytes([0, flags]) + struct.pack("<i", srs_id)
+def expected_rows(table):
+    """The rows a layer must hold, from the table alone: ISO WKB of each geometry (raw WKB as given,
+    shapely promoted to the layer's type, in the layer's dimensions; None stays NULL) and each value as
+    Python (NaN -> NULL, booleans -> 0 / 1). Not the writer's code: what the GeoPackage standard and the
+    table say."""
+    out = []
+    columns = {name: np.asarray(v) for name, v in table.columns.items()}
+    for i in range(len(table)):
+        geom = None
+        if table.geometry_type != "none":
+            g = table.geometries[i]
+            if table.raw:
+                geom = None if g is None else bytes(g)
+            elif g is not None:
+                geom = shapely.to_wkb(_promoted(g, table.geometry_type), flavor="iso", byte_order=1,
+                                      output_dimension=3 if table.has_z else 2)
+        values = []
+        for v in (c[i] for c in columns.values()):
+            if v is None or (isinstance(v, (float, np.floating)) and not np.isfinite(v)):
+                values.append(None)
+            elif isinstance(v, (bool, np.bool_)):
+                values.append(int(v))
+            elif isinstance(v, (np.integer, np.floating)):
+                values.append(v.item())
+            else:
+                values.append(v)
+        out.append((geom, values))
+    return out
 
 
-def _reference_write_gpkg(path, tables):
-    """The hand-written writer before GDAL (one INSERT per row), kept verbatim as the reference for the rows."""
-    import sqlite3
-
-    from sylva.core.io.gpkg.write import _python_values
-
-    def _promote(geoms, geometry_type):
-        if geometry_type == "line":
-            return np.array([shapely.MultiLineString([g]) if g is not None and g.geom_type == "LineString" else g
-                             for g in geoms], dtype=object)
-        if geometry_type == "polygon":
-            return np.array([shapely.MultiPolygon([g]) if g is not None and g.geom_type == "Polygon" else g
-                             for g in geoms], dtype=object)
-        return geoms
-
-    def _blobs(geoms, srs_id, has_z):
-        wkb = shapely.to_wkb(geoms, output_dimension=3 if has_z else 2, flavor="iso", byte_order=1)
-        full, empty = _header(srs_id, False), _header(srs_id, True)
-        is_empty = shapely.is_empty(geoms).tolist()
-        return [None if w is None else (empty if e else full) + w for w, e in zip(wkb.tolist(), is_empty)]
-
-    def _write_table(con, table):
-        name = table.name
-        srs_id = _srs_row(table.crs)[0]
-        types = table.field_types()
-        cols = ", ".join(f'"{c}" {_SQL_TYPES[t]}' for c, t in types.items())
-        spatial = table.geometry_type != "none"
-        geom_col = "geom BLOB, " if spatial else ""
-        con.execute(f'CREATE TABLE "{name}" (fid INTEGER PRIMARY KEY AUTOINCREMENT, {geom_col}{cols})'.replace(", )", ")"))
-        n = len(table)
-        values = [_python_values(v, types[c]) for c, v in table.columns.items()]
-        bounds = (None,) * 4
-        if spatial and table.raw:
-            header = _header(srs_id, False)
-            values = [[None if w is None else header + w for w in table.geometries]] + values
-            if table.extent is not None:
-                bounds = tuple(float(v) for v in table.extent)
-            elif n:
-                geoms = shapely.from_wkb(np.asarray(table.geometries, dtype=object))
-                bounds = tuple(float(v) for v in shapely.total_bounds(geoms))
-        elif spatial:
-            geoms = _promote(np.asarray(table.geometries, dtype=object), table.geometry_type)
-            blobs = _blobs(geoms, srs_id, table.has_z)
-            values = [blobs] + values
-            if n:
-                b = shapely.total_bounds(geoms)
-                bounds = tuple(float(v) for v in b) if np.all(np.isfinite(b)) else bounds
-        names = (["geom"] if spatial else []) + list(types)
-        placeholders = ",".join("?" * len(names))
-        quoted = ",".join(f'"{c}"' for c in names)
-        if names:
-            con.executemany(f'INSERT INTO "{name}" ({quoted}) VALUES ({placeholders})', zip(*values))
-        else:
-            con.executemany(f'INSERT INTO "{name}" DEFAULT VALUES', [()] * n)
-        con.execute(
-            "INSERT INTO gpkg_contents (table_name, data_type, identifier, min_x, min_y, max_x, max_y, srs_id)"
-            " VALUES (?,?,?,?,?,?,?,?)",
-            (name, "features" if spatial else "attributes", name, *bounds, srs_id if spatial else None),
-        )
-        if spatial:
-            con.execute(
-                "INSERT INTO gpkg_geometry_columns VALUES (?,?,?,?,?,?)",
-                (name, "geom", _GEOMETRY_NAMES[table.geometry_type], srs_id, 1 if table.has_z else 0,
-                 1 if table.has_m else 0),
-            )
-
-    con = sqlite3.connect(path)
-    con.execute("PRAGMA application_id = 1196444487")
-    con.execute("PRAGMA user_version = 10200")
-    con.executescript(
-        """
-        CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT NOT NULL, srs_id INTEGER PRIMARY KEY,
-          organization TEXT NOT NULL, organization_coordsys_id INTEGER NOT NULL,
-          definition TEXT NOT NULL, description TEXT);
-        CREATE TABLE gpkg_contents (table_name TEXT NOT NULL PRIMARY KEY, data_type TEXT NOT NULL,
-          identifier TEXT UNIQUE, description TEXT DEFAULT '',
-          last_change DATETIME NOT NULL DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ','now')),
-          min_x DOUBLE, min_y DOUBLE, max_x DOUBLE, max_y DOUBLE, srs_id INTEGER);
-        CREATE TABLE gpkg_geometry_columns (table_name TEXT NOT NULL, column_name TEXT NOT NULL,
-          geometry_type_name TEXT NOT NULL, srs_id INTEGER NOT NULL, z TINYINT NOT NULL,
-          m TINYINT NOT NULL, CONSTRAINT pk_geom_cols PRIMARY KEY (table_name, column_name));
-        """
-    )
-    srs = {
-        (-1, "Undefined cartesian SRS", "NONE", -1, "undefined"),
-        (0, "Undefined geographic SRS", "NONE", 0, "undefined"),
-        (4326, "WGS 84 geodetic", "EPSG", 4326,
-         'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
-         'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433],AUTHORITY["EPSG","4326"]]'),
-    }
-    for table in tables:
-        srs.add(_srs_row(table.crs))
-    known = set()
-    for row in sorted(srs, key=lambda r: r[0]):
-        if row[0] not in known:
-            known.add(row[0])
-            con.execute("INSERT INTO gpkg_spatial_ref_sys (srs_id, srs_name, organization,"
-                        " organization_coordsys_id, definition) VALUES (?,?,?,?,?)", row)
-    for table in tables:
-        _write_table(con, table)
-    con.commit()
-    con.close()
+def ogr_rows(path, name):
+    """The rows of layer ``name`` as GDAL/OGR reads them (another reader than Sylva's): ISO WKB of each
+    geometry (None for NULL) and the fields in order (None for NULL)."""
+    ds = ogr.Open(str(path))
+    layer = ds.GetLayerByName(name)
+    defn = layer.GetLayerDefn()
+    out = []
+    for f in layer:
+        g = f.GetGeometryRef()
+        values = [None if f.IsFieldNull(k) else f.GetField(k) for k in range(defn.GetFieldCount())]
+        out.append((None if g is None else bytes(g.ExportToIsoWkb()), values))
+    return out
 
 
-_SQL_TYPES = {"integer": "INTEGER", "real": "DOUBLE", "text": "TEXT"}
+def check_contents(path, tables):
+    """gpkg_contents and gpkg_geometry_columns say what the tables say: each layer's kind, its extent (the
+    given one, else the bounds of its geometries), its geometry type, z and m flags and its CRS."""
+    ds = ogr.Open(str(path))
+    with closing(sqlite3.connect(path)) as con:
+        for t in tables:
+            kind, *box = con.execute("SELECT data_type, min_x, min_y, max_x, max_y FROM gpkg_contents "
+                                     "WHERE table_name = ?", (t.name,)).fetchone()
+            assert kind == ("attributes" if t.geometry_type == "none" else "features"), t.name
+            if t.geometry_type == "none":
+                continue
+            geoms = t.geometries
+            if t.raw:
+                geoms = shapely.from_wkb(np.asarray(geoms, dtype=object))
+            want = t.extent if t.extent is not None else (
+                shapely.total_bounds(np.asarray(geoms, dtype=object)) if len(t) else [np.nan] * 4)
+            if np.all(np.isfinite(want)):
+                np.testing.assert_allclose(np.array(box, dtype=float), want, rtol=0, atol=1e-9, err_msg=t.name)
+            else:
+                assert box == [None] * 4, t.name
+            gtype, z, m, srs_id = con.execute("SELECT geometry_type_name, z, m, srs_id FROM gpkg_geometry_columns "
+                                              "WHERE table_name = ?", (t.name,)).fetchone()
+            assert (gtype, z, m) == (_GEOMETRY_NAMES[t.geometry_type], int(t.has_z), int(t.has_m)), t.name
+            srs = ds.GetLayerByName(t.name).GetSpatialRef()
+            if t.crs is None:
+                assert srs_id == -1, t.name                       # the undefined Cartesian SRS (Req 11)
+            else:
+                assert pyproj.CRS(srs.ExportToWkt()).equals(t.crs, ignore_axis_order=True), t.name
 
 
 def varied_tables(rng, n_points: int):
@@ -291,11 +226,12 @@ def varied_tables(rng, n_points: int):
 # --------------------------------------------------------------------------- conformance, R-trees, rows
 
 @pytest.mark.parametrize("n_points", [0, 1, 334, 1000, 2501])
-def test_rows_are_those_of_the_old_writer_and_the_file_conforms(tmp_path, n_points):
+def test_rows_hold_what_the_tables_say_and_the_file_conforms(tmp_path, n_points):
     tables = varied_tables(np.random.default_rng(n_points), n_points)
-    _reference_write_gpkg(tmp_path / "ref.gpkg", tables)
     path = write_gpkg(tmp_path / "new.gpkg", tables)
-    assert user_rows(path, tmp_path / "ref.gpkg") == user_rows(tmp_path / "ref.gpkg")
+    for t in tables:
+        assert ogr_rows(path, t.name) == expected_rows(t), t.name
+    check_contents(path, tables)
     assert validate(path) == ""
     check_rtrees(path)
     with closing(sqlite3.connect(path)) as con:
