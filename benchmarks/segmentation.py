@@ -6,6 +6,7 @@
                                                  # one setting of the table, no throughput
     python benchmarks/segmentation.py --variants '[{}, {"top_window_points": 50}]'
                                                  # what changing a default trades (table 4 only)
+    python benchmarks/segmentation.py --pairs    # what tells one tree's two tops from two trees (5 only)
 
 Prints, for every method side by side:
 
@@ -36,7 +37,12 @@ Prints, for every method side by side:
    peak of a second run; numpy reports its buffers to tracemalloc) and the
    process's ru_maxrss, one fresh subprocess per size;
 4. with ``--variants``, only: NormalizedCut with given field overrides side
-   by side on a panel of the suite, the sample and MixedConifer.laz.
+   by side on a panel of the suite, the sample and MixedConifer.laz;
+5. with ``--pairs``, only: for every pair of touching regions of the
+   candidate tops (all merges off), the features a merge rule could use
+   (height ratio, gap and reach in allometric crown radii, prominence above
+   the saddle, elongation), pairs of one reference tree beside pairs of two,
+   on the same panel and MixedConifer.laz (lidR's trees as the reference).
 """
 import argparse
 import dataclasses
@@ -258,6 +264,90 @@ def variant_table(variants, seed=0):
     print()
 
 
+#: NormalizedCut with every merge off: the regions of all its candidate tops (table 5).
+UNMERGED = dict(merge_ncut=1e9, always_merge_ncut=1e9, merge_reach=0.0, merge_plateau=0.0, min_tree_points=1)
+
+
+def touching_pairs(cloud, labels, reference):
+    """Features of every pair of touching regions (points of the two within 1 m), the higher top first,
+    and whether the reference holds both in one tree (each region's majority reference tree).
+
+    Returns (same (k,) bool, features (k, 5)): the lower top's height / the higher's; the distance of
+    the tops / the higher top's allometric crown radius (:func:`crown_radius_m`); the lower top's rise
+    above the saddle (the highest of the lower points of the touching pairs) / its height; the
+    elongation sqrt(l1 / l2) of the two upper crowns' points (above half the lower top) in plan; the
+    90th percentile of their distance to the higher top / its crown radius. Sylva benchmark measure."""
+    from scipy.spatial import cKDTree
+
+    from sylva.core.segment.ncut import crown_radius_m
+
+    h, xy = cloud.attrs["height"], cloud.xyz[:, :2]
+    sel = np.flatnonzero(labels > 0)
+    order = sel[np.lexsort((-h[sel], labels[sel]))]
+    starts = np.flatnonzero(np.r_[True, labels[order][1:] != labels[order][:-1]])
+    ids = labels[order[starts]]
+    top = np.zeros(int(labels.max()) + 1, dtype=np.int64)
+    top[ids] = order[starts]
+    members = dict(zip(ids, np.split(order, starts[1:])))
+    majority = np.zeros(len(top), dtype=np.int64)
+    for t, m in members.items():
+        r = reference[m][reference[m] > 0]
+        majority[t] = np.bincount(r).argmax() if len(r) else 0
+    pp = cKDTree(cloud.xyz).query_pairs(1.0, output_type="ndarray")
+    la, lb = labels[pp[:, 0]], labels[pp[:, 1]]
+    keep = (la > 0) & (lb > 0) & (la != lb)
+    la, lb, low = la[keep], lb[keep], np.minimum(h[pp[keep, 0]], h[pp[keep, 1]])
+    key = np.minimum(la, lb).astype(np.int64) * len(top) + np.maximum(la, lb)
+    o = np.lexsort((-low, key))
+    first = o[np.r_[True, key[o][1:] != key[o][:-1]]]
+    same, rows = [], []
+    for k, saddle in zip(key[first], low[first]):
+        a, b = divmod(int(k), len(top))
+        if h[top[a]] < h[top[b]]:
+            a, b = b, a
+        ha, hb, radius = h[top[a]], h[top[b]], crown_radius_m(h[top[a]])
+        union = np.r_[members[a], members[b]]
+        union = union[h[union] > 0.5 * hb]
+        ev = np.linalg.eigvalsh(np.cov(xy[union].T)) if len(union) > 3 else np.ones(2)
+        rows.append((hb / ha, np.hypot(*(xy[top[a]] - xy[top[b]])) / radius, (hb - saddle) / hb,
+                     np.sqrt(ev[1] / max(ev[0], 1e-9)),
+                     np.percentile(np.hypot(*(xy[union] - xy[top[a]]).T), 90) / radius))
+        same.append(majority[a] == majority[b] and majority[a] > 0)
+    return np.array(same, dtype=bool), np.array(rows).reshape(-1, 5)
+
+
+def pair_table(seed=0):
+    """What tells one tree's two tops from two trees: the features of :func:`touching_pairs` over the
+    regions of every candidate top (:data:`UNMERGED`), same-tree pairs beside two-tree pairs, on the
+    panel of --variants and on MixedConifer.laz (lidR's trees as the reference), and how many of
+    each today's crown-reach rule (``merge_reach``, ``merge_prominence``) would merge."""
+    from sylva.core.segment import NormalizedCut, segment_trees
+    from sylva.core.terrain import normalize
+
+    d = NormalizedCut()
+    cases = []
+    for kind, stand_name, density in VARIANT_PANEL:
+        stand, scan = _suite_scan(kind, stand_name, density, seed)
+        cases.append((f"{kind[:5]}-{stand_name[:3]}-{density}", normalize(scan.cloud), scan.truth_tree))
+    if (DATA / "als" / "MixedConifer.laz").exists():
+        cases.append(("MixedConifer (lidR)", *_mixed_conifer()))
+    names = ("height ratio", "gap / radius", "prominence", "elongation", "reach / radius")
+    print("5. Touching candidate regions (every merge off): 10th / 50th / 90th percentile of each feature, "
+          "pairs of one reference tree | pairs of two; 'rule': pairs today's crown-reach rule merges")
+    print(f"   {'stand':19s} {'pairs':>11s} " + " ".join(f"{n:>29s}" for n in names) + "   rule one|two")
+    for name, cloud, reference in cases:
+        same, f = touching_pairs(cloud, segment_trees(cloud, NormalizedCut(**UNMERGED)), reference)
+        cells = []
+        for j in range(f.shape[1]):
+            a, b = (np.percentile(f[m, j], [10, 50, 90]) if m.any() else np.full(3, np.nan)
+                    for m in (same, ~same))
+            cells.append(f"{a[0]:4.2f} {a[1]:4.2f} {a[2]:4.2f}|{b[0]:4.2f} {b[1]:4.2f} {b[2]:4.2f}")
+        rule = (f[:, 1] < d.merge_reach) & (f[:, 2] < d.merge_prominence)
+        print(f"   {name:19s} {same.sum():5d}|{(~same).sum():<5d} " + " ".join(f"{c:>29s}" for c in cells)
+              + f"   {(rule & same).sum():5d}|{(rule & ~same).sum():<5d}", flush=True)
+    print()
+
+
 def _chm_from_kept_tops(cloud):
     """Dalponte's CHM region growing from the tops of NormalizedCut's trees (each tree's highest point)."""
     from sylva.core.segment import ChmRegionGrowing, NormalizedCut, segment_trees
@@ -466,6 +556,8 @@ def main(argv=None):
     parser.add_argument("--variants", default=None,
                         help='JSON list of NormalizedCut field overrides to compare, e.g. '
                              '\'[{}, {"top_window_points": 50}]\' (only this table is printed)')
+    parser.add_argument("--pairs", action="store_true",
+                        help="only table 5: the features of touching candidate regions, one tree or two")
     parser.add_argument("--skip-accuracy", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child_make:
@@ -484,6 +576,9 @@ def main(argv=None):
         except (ValueError, TypeError, AttributeError) as err:
             parser.error(f"--variants: {err}")
         variant_table(variants, args.seed)
+        return
+    if args.pairs:
+        pair_table(args.seed)
         return
     if not args.skip_accuracy:
         stands = tuple(s for s in args.stands.split(",") if s)
