@@ -229,7 +229,8 @@ SEGMENT_TREES = Algorithm(
     group_id="trees",
     summary=(
         "Finds every tree of a LiDAR tile and the points that belong to it. Heights are normalised, "
-        "noise left out, tree tops found by a local-maximum filter, and the canopy is cut into trees by the "
+        "noise left out, points of classes that are never a tree (buildings, water, rail, roads, wires, "
+        "towers, bridge decks: ASPRS 6, 9-11, 13-17) kept out of every tree, tree tops found by a local-maximum filter, and the canopy is cut into trees by the "
         "normalised cut of Hu et al. (2017, §4.1) on a voxel graph whose links weigh horizontal and "
         "vertical distance, intensity and colour (METHOD ncut), or by seeded region growing on a "
         "canopy height model (Dalponte & Coomes 2016; METHOD chm), the classic baseline. Terrestrial and "

@@ -95,6 +95,34 @@ def test_separate_trees_are_found_exactly_with_their_top_ids():
     assert np.all(labels[truth == 0] == 0)          # ground stays 0
 
 
+def _with_roof_and_wire(cloud, cls_roof, cls_wire, seed=1):
+    """``cloud`` with a flat 8 m roof (6 m x 6 m, away from the crowns) and a power line at 25 m
+    across the tile (over the crowns), of the given classes."""
+    rng = np.random.default_rng(seed)
+    roof = np.column_stack([rng.uniform(20, 26, 700), rng.uniform(19, 25, 700), np.full(700, 8.0)])
+    t = rng.uniform(0, 28, 300)
+    wire = np.column_stack([t, 0.5 + 0.95 * t, 25.0 + 0.01 * (t - 14) ** 2])
+    add = np.vstack([roof, wire])
+    xyz = np.vstack([cloud.xyz, add + [ORIGIN[0], ORIGIN[1], GROUND_Z]])
+    attrs = {"height": np.r_[cloud.attrs["height"], add[:, 2]],
+             "classification": np.r_[cloud.attrs["classification"], np.full(700, cls_roof, np.uint8),
+                                     np.full(300, cls_wire, np.uint8)].astype(np.uint8),
+             "intensity": np.r_[cloud.attrs["intensity"], np.full(1000, 200, np.uint16)]}
+    return PointCloud(xyz, attrs=attrs, source="test_tile.laz")
+
+
+@pytest.mark.parametrize("method", [NormalizedCut(), ChmRegionGrowing()])
+def test_classified_roofs_and_wires_are_no_trees(method):
+    cloud, truth = cones(THREE, (28, 28))
+    alone = segment_trees(cloud, method)
+    classified = segment_trees(_with_roof_and_wire(cloud, 6, 14), method)
+    assert np.all(classified[len(cloud):] == 0)                     # the roof and the wire are no tree
+    np.testing.assert_array_equal(classified[:len(cloud)], alone)   # and change none of the trees
+    # the same points unclassified (class 1) are segmented: what the classes alone change
+    unclassified = segment_trees(_with_roof_and_wire(cloud, 1, 1), method)
+    assert np.any(unclassified[len(cloud):] > 0)
+
+
 def test_touching_crowns_are_separated_along_the_crease():
     cloud, truth = cones(TOUCHING, (24, 20), density=30.0)
     labels = segment_trees(cloud, NormalizedCut(), tops=tops_of(TOUCHING))

@@ -19,7 +19,11 @@ Rules every method follows (shared helpers in :mod:`.base`):
   ground); if it is not, :func:`sylva.core.terrain.normalize` is called.
 * Points with NaN/infinite coordinates raise :class:`InputError` naming the
   file; duplicated points are fine.
-* Ground points (class 2, or ``height < ground_tolerance_m``) are 0.
+* Ground points (class 2, or ``height < ground_tolerance_m``) are 0, and so
+  are points of the ASPRS classes that are never a tree
+  (:data:`NOT_TREE_CLASSES`: buildings, water, rail, roads, wires, towers,
+  bridge decks): the method runs without them, so a classified roof or power
+  line is neither a tree nor part of one.
 * Points below ``min_height_m`` are not crown: they are labelled only when
   they stand in the *column* of a labelled crown, i.e. directly below the
   crown's lowest labelled voxel/cell in the same horizontal cell (stems and
@@ -42,7 +46,14 @@ from .base import LocalTops, validate_cloud
 from .chm import ChmRegionGrowing
 from .ncut import NormalizedCut
 
-__all__ = ["segment_trees", "NormalizedCut", "ChmRegionGrowing", "LocalTops"]
+__all__ = ["segment_trees", "NormalizedCut", "ChmRegionGrowing", "LocalTops", "NOT_TREE_CLASSES"]
+
+#: ASPRS classes that are never part of a tree (LAS 1.4 R15, Table 17): building (6), water (9),
+#: rail (10), road surface (11), wire guard (13), wire conductor (14), transmission tower (15),
+#: wire-structure connector (16), bridge deck (17).  Never classified (0), unclassified (1) and
+#: vegetation (3-5) can be trees; ground (2) and noise (7, 18) are left out by their own rules.
+#: (Sylva, not in Hu et al.: a classified national survey tile near a village or a power line.)
+NOT_TREE_CLASSES = (6, 9, 10, 11, 13, 14, 15, 16, 17)
 
 # --------------------------------------------------------------------------- the verb
 
@@ -66,10 +77,20 @@ def segment_trees(cloud: PointCloud, method=NormalizedCut(), tops=None,
     cloud = validate_cloud(cloud)
     if len(cloud) == 0:
         return np.zeros(0, dtype=np.int32)
-    labels = method.segment(cloud, tops, progress, cancelled)
-    labels = np.asarray(labels, dtype=np.int32)
+    cls = cloud.attr("classification")
+    other = np.isin(np.asarray(cls), NOT_TREE_CLASSES) if cls is not None else None
+    if other is not None and other.any():
+        labels = np.zeros(len(cloud), dtype=np.int32)
+        labels[~other] = _segment(method, cloud.subset(~other), tops, progress, cancelled)
+    else:
+        labels = _segment(method, cloud, tops, progress, cancelled)
+    report(progress, 1.0, "tree segmentation done")
+    return labels
+
+
+def _segment(method, cloud: PointCloud, tops, progress: Progress, cancelled: CancelCheck) -> np.ndarray:
+    labels = np.asarray(method.segment(cloud, tops, progress, cancelled), dtype=np.int32)
     if labels.shape != (len(cloud),):
         raise AssertionError(f"{type(method).__name__} returned {labels.shape} labels "
                              f"for {len(cloud)} points")
-    report(progress, 1.0, "tree segmentation done")
     return labels
