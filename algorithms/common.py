@@ -91,7 +91,8 @@ def require_existing(path: str) -> str:
     return path
 
 
-def method_params(cls, texts: dict, advanced: tuple = (), ranges: dict = None, prefix: str = "") -> tuple:
+def method_params(cls, texts: dict, advanced: tuple = (), ranges: dict = None, prefix: str = "",
+                  optional: tuple = ()) -> tuple:
     """Params for the fields of a method dataclass, named as the fields in upper case.
 
     ``texts`` maps a field name to (description, help); only those fields are
@@ -100,7 +101,9 @@ def method_params(cls, texts: dict, advanced: tuple = (), ranges: dict = None, p
     field to its (minimum, maximum): the values the dataclass accepts (within
     sane limits), so the front ends refuse the others before the run.
     ``prefix`` starts each label (e.g. "Normalised cut: "), so one method's
-    parameters read as a group in the dialog.
+    parameters read as a group in the dialog.  ``optional`` fields may be left
+    empty (the default then): a field added after a release, so that Modeler
+    graphs saved before it, which have no value for it, still validate.
     """
     import dataclasses
 
@@ -114,7 +117,8 @@ def method_params(cls, texts: dict, advanced: tuple = (), ranges: dict = None, p
         kind = BOOLEAN if isinstance(default, bool) else INTEGER if isinstance(default, int) else NUMBER
         lo, hi = ranges.get(field, (None, None)) if kind != BOOLEAN else (None, None)
         params.append(Param(field.upper(), kind, prefix + description, default=default,
-                            minimum=lo, maximum=hi, help=text, advanced=field in advanced))
+                            minimum=lo, maximum=hi, help=text, advanced=field in advanced,
+                            optional=field in optional))
     return tuple(params)
 
 

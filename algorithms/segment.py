@@ -104,13 +104,17 @@ NCUT_PARAMS = method_params(NormalizedCut, {
     "apex_slope": ("steep-apex drop (m/m)", "The drop around such a tip, metres per metre."),
     "apex_sectors": ("steep-apex directions (of 8)", "In how many of 8 compass directions the canopy must "
                      "drop that steeply."),
+    "understory_points": ("points of a suppressed tree", "A crown under the canopy that no tree top reaches "
+                          "(more than 2 m below the crowns above it) is a tree of its own when it holds at "
+                          "least this many points and spans 2.5 m; smaller pieces join the nearest tree "
+                          "(Sylva, not in the paper; after Hamraz et al. 2017); 0 turns this off."),
 }, advanced=("voxel_m", "radius_m", "sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour",
-             "top_window_points", "apex_window_m", "apex_slope", "apex_sectors"),
+             "top_window_points", "apex_window_m", "apex_slope", "apex_sectors", "understory_points"),
    ranges={"voxel_m": (0.05, 10.0), "radius_m": (0.05, 50.0), "sigma_h_m": (0.01, 100.0),
            "sigma_v_m": (0.01, 100.0), "sigma_intensity": (0.001, 100.0), "sigma_colour": (0.001, 10.0),
            "top_window_points": (0.0, 10000.0), "apex_window_m": (0.0, 20.0), "apex_slope": (0.01, 100.0),
-           "apex_sectors": (1, 8)},
-   prefix="Normalised cut: ")
+           "apex_sectors": (1, 8), "understory_points": (0, 1000000)},
+   prefix="Normalised cut: ", optional=("understory_points",))
 
 
 

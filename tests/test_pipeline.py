@@ -152,6 +152,25 @@ def test_shipped_model_is_the_chain(sylva_provider, tmp_path):
 
 
 @pytest.mark.qgis
+def test_a_graph_saved_before_a_later_parameter_still_validates(sylva_provider, tmp_path):
+    """UNDERSTORY_POINTS came after graphs were saved: a graph with no value for it validates."""
+    import xml.etree.ElementTree as ET
+
+    from qgis.core import QgsProcessingModelAlgorithm
+
+    tree = ET.parse(MODEL)
+    for parent in tree.iter():
+        for option in [o for o in parent if o.get("name") == "UNDERSTORY_POINTS"]:
+            parent.remove(option)
+    tree.write(tmp_path / "old.model3")
+    model = QgsProcessingModelAlgorithm()
+    assert model.fromFile(str(tmp_path / "old.model3"))
+    assert "segment" in model.childAlgorithms()
+    ok, issues = model.validate()
+    assert ok, issues
+
+
+@pytest.mark.qgis
 def test_model_runs_with_qgis_process(sample_laz, tmp_path):
     from sylva.core.io.gpkg import read_gpkg
     from sylva.core.io.las import read_las

@@ -204,6 +204,40 @@ def test_huge_coordinates_give_the_same_labels_as_small_ones():
     assert accuracy(b, truth, [1, 2]) > 0.9
 
 
+def _with_understory(seed=3):
+    """Two tall cones and a small tree (apex 8 m, crown radius 1.5 m, 120 points) under the
+    first one's crown, 4 m from its top, where that crown is 9-15 m high: more than the graph's
+    2 m above it, so no surface top reaches it.  Returns (cloud, its points' mask)."""
+    cloud, truth = cones([(10.0, 10.0, 22.0, 6.0), (24.0, 10.0, 20.0, 5.0)], (32, 20))
+    rng = np.random.default_rng(seed)
+    r = 1.5 * np.sqrt(rng.uniform(0, 1, 120))
+    a = rng.uniform(0, 2 * np.pi, 120)
+    z = 8.0 - 4.0 * r / 1.5 - rng.uniform(0, 0.5, 120)
+    add = np.column_stack([14.0 + r * np.cos(a), 10.0 + r * np.sin(a), z])
+    xyz = np.vstack([cloud.xyz, add + [ORIGIN[0], ORIGIN[1], GROUND_Z]])
+    attrs = {"height": np.r_[cloud.attrs["height"], z],
+             "classification": np.r_[cloud.attrs["classification"], np.ones(120, np.uint8)],
+             "intensity": np.r_[cloud.attrs["intensity"], np.full(120, 200, np.uint16)]}
+    under = np.r_[np.zeros(len(cloud), bool), np.ones(120, bool)]
+    return PointCloud(xyz, attrs=attrs, source="test_tile.laz"), under
+
+
+def test_a_suppressed_tree_under_the_canopy_is_a_tree_of_its_own():
+    cloud, under = _with_understory()
+    labels = segment_trees(cloud, NormalizedCut())
+    ids, counts = np.unique(labels[under], return_counts=True)
+    assert ids[np.argmax(counts)] > 0 and counts.max() >= 0.9 * under.sum()
+    mine = ids[np.argmax(counts)]
+    assert np.sum(labels[~under] == mine) <= 5      # a tree of its own (edge echoes of the crown above may join)
+    assert len(np.unique(labels[labels > 0])) == 3
+    # without the rule its points are taken by the tall tree above it or by none
+    off = segment_trees(cloud, NormalizedCut(understory_points=0))
+    assert len(np.unique(off[off > 0])) == 2
+    # given tops are the trees: nothing is added
+    assert len(np.unique(segment_trees(cloud, NormalizedCut(), tops=tops_of(
+        [(10.0, 10.0, 22.0, 6.0), (24.0, 10.0, 20.0, 5.0)])))) == 3          # 0 and the two tops
+
+
 def test_stems_below_the_crown_are_kept_and_isolated_points_are_not():
     tree = [(10.0, 10.0, 18.0, 4.0)]
     cloud, truth = cones(tree, (30, 20))

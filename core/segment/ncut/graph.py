@@ -338,3 +338,47 @@ def top_voxels(graph: VoxelGraph, tops, params: "NormalizedCut"):
     keep = order[np.sort(first)]
     return (vox[keep].astype(np.int64), tops.tree_id[keep].astype(np.int64),
             tops.height[keep])
+
+
+#: A crown's highest point lies within this fraction of its horizontal extent from the centroid of
+#: its points (a suppressed tree's crown is centred on its apex; a lower piece of a taller tree's
+#: crown, cut off by a sparse scan, is not).
+APEX_CENTRED = 0.25
+
+
+def topless_crowns(graph: VoxelGraph, height: np.ndarray, xy: np.ndarray, top_voxel: np.ndarray,
+                   min_points: int, min_extent_m: float):
+    """(voxel, height) of the highest point of every connected component of the graph that holds no top,
+    at least ``min_points`` crown points, spans at least ``min_extent_m`` horizontally and has
+    its highest point near its centre (:data:`APEX_CENTRED`).
+
+    ``height`` and ``xy`` are those of the crown points (``graph.point_voxel`` order).  The tops
+    are maxima of the canopy surface; a crown the graph joins to none of them (no edge within
+    ``radius_m`` across, ``height_m`` up) lies under the canopy: a suppressed tree, segmented apart
+    from the overstory as Hamraz et al. (2017, ISPRS J. 130) segment understory trees.  Smaller
+    pieces stay crown fragments (attached to a tree within ``attach_m`` by the clean-up).  Ordered
+    by height, then x, y (deterministic).  Sylva, not in Hu et al."""
+    from scipy.sparse.csgraph import connected_components
+
+    none = (np.zeros(0, dtype=np.int64), np.zeros(0))
+    if graph.n == 0:
+        return none
+    n_comp, comp = connected_components(graph.W, directed=False)
+    has_top = np.zeros(n_comp, dtype=bool)
+    has_top[comp[top_voxel]] = True
+    pc = comp[graph.point_voxel]
+    count = np.bincount(pc, minlength=n_comp)
+    sel = np.flatnonzero((~has_top & (count >= min_points))[pc])
+    if len(sel) == 0:
+        return none
+    # per candidate component: its points, highest first (ties: lowest x, then y)
+    order = sel[np.lexsort((xy[sel, 1], xy[sel, 0], -height[sel], pc[sel]))]
+    starts = np.flatnonzero(np.r_[True, pc[order][1:] != pc[order][:-1]])
+    first = order[starts]
+    p = xy[order]
+    extent = (np.maximum.reduceat(p, starts) - np.minimum.reduceat(p, starts)).max(axis=1)
+    centre = np.add.reduceat(p, starts) / count[pc[first], None]
+    keep = (extent >= min_extent_m) & (np.hypot(*(xy[first] - centre).T) <= APEX_CENTRED * extent)
+    first = first[keep]
+    first = first[np.lexsort((xy[first, 1], xy[first, 0], -height[first]))]
+    return graph.point_voxel[first].astype(np.int64), height[first]

@@ -16,7 +16,7 @@ from ...tops import MIN_TREE_HEIGHT_M
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import TOP_TOLERANCE_M, merge_small, within_crown_reach
 from .cut import cut_graph
-from .graph import column_maxima, local_canopy_density, top_voxels, voxel_graph
+from .graph import column_maxima, local_canopy_density, top_voxels, topless_crowns, voxel_graph
 
 
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
@@ -65,6 +65,12 @@ class NormalizedCut:
     saddle, is a bump of that crown); ``merge_plateau``: two such tops whose
     heights differ by less than this fraction are one flat crown up to
     ``PLATEAU_REACH`` crown radii apart.
+    ``understory_points``, ``understory_extent_m``: a connected piece of the
+    voxel graph that no top reaches (a crown under the canopy, more than
+    ``height_m`` below the crowns above it) is a tree of its own, its top the
+    highest point, when it holds at least ``understory_points`` crown points
+    and spans ``understory_extent_m`` horizontally (0 points: off; not when
+    tops are given).
     ``min_tree_points``: smaller trees are merged into their neighbours (where
     the scan is sparse, the first returns of ``MIN_TREE_AREA_M2`` of canopy
     around the top, if fewer).
@@ -93,6 +99,8 @@ class NormalizedCut:
     merge_reach: float = 0.7
     merge_prominence: float = 0.15
     merge_plateau: float = 0.05
+    understory_points: int = 40
+    understory_extent_m: float = 2.5
     min_tree_points: int = 20
     crown_reach: float = 1.25
     climb: float = 100.0
@@ -111,9 +119,10 @@ class NormalizedCut:
         if not 0 <= self.merge_dip < float("inf"):
             raise ParameterError("NormalizedCut: merge_dip must be >= 0")
         if not all(0 <= v < float("inf") for v in (self.merge_reach, self.merge_prominence, self.crown_reach,
-                                                   self.min_tree_points)):
-            raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach and min_tree_points "
-                                 "must be >= 0 and finite")
+                                                   self.min_tree_points, self.understory_points,
+                                                   self.understory_extent_m)):
+            raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach, min_tree_points, "
+                                 "understory_points and understory_extent_m must be >= 0 and finite")
         if not (0 <= self.top_window_points and 0 <= self.apex_window_m < float("inf")
                 and 0 < self.top_window_m < float("inf")):
             raise ParameterError("NormalizedCut: top_window_points and apex_window_m must be >= 0, "
@@ -175,6 +184,7 @@ class NormalizedCut:
         report(progress, 0.1, "finding tree tops")
         # canopy first returns per m2 around every point (top windows, minimum tree size)
         rho = local_canopy_density(cloud, local, crown)
+        found = tops is None
         if tops is None and graph.n:
             tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
                                    cancelled, rho)
@@ -184,6 +194,13 @@ class NormalizedCut:
         if len(local_tops) == 0 or graph.n == 0:
             return labels
         top_voxel, top_id, top_height = top_voxels(graph, local_tops, self)
+        if found and self.understory_points > 0:
+            # crowns under the canopy that no surface top reaches: trees of their own
+            extra, extra_h = topless_crowns(graph, height[crown], local[crown, :2], top_voxel,
+                                            self.understory_points, self.understory_extent_m)
+            top_voxel = np.r_[top_voxel, extra]
+            top_id = np.r_[top_id, top_id.max(initial=0) + 1 + np.arange(len(extra))]
+            top_height = np.r_[top_height, extra_h]
         # the minimum size of a tree, in points, at the scan's density around its top
         voxel_rho = np.zeros(graph.n)
         np.maximum.at(voxel_rho, graph.point_voxel, rho[crown])
