@@ -148,6 +148,28 @@ def test_three_by_three_tiles_give_the_trees_of_one_tile(stand, tmp_path):
     assert tops.columns["tree_id"].max() < 2 ** 31
 
 
+def test_tiles_give_the_suppressed_trees_of_one_tile(tmp_path):
+    """A dense broadleaf stand whose suppressed trees are found by NormalizedCut's understory rule
+    (graph components no top reaches): 2 x 2 tiles give the trees of one tile, those included."""
+    from sylva.core.segment import NormalizedCut, segment_trees
+    from sylva.core.terrain import normalize
+    from sylva.testing import crowns
+
+    stand, spec = crowns.suite_preset("broadleaf", "dense", 10, seed=1, width_m=50.0)
+    scan = simulate_scan(stand, spec)
+    cloud = normalize(scan.cloud)
+    with_rule = segment_trees(cloud, NormalizedCut())
+    without = segment_trees(cloud, NormalizedCut(understory_points=0))
+    assert len(np.unique(with_rule[with_rule > 0])) > len(np.unique(without[without > 0]))
+    cut(scan.cloud, scan.truth_tree, tmp_path / "one", 1)
+    cut(scan.cloud, scan.truth_tree, tmp_path / "two", 2)
+    whole = run_catalog([tmp_path / "one"], tmp_path / "out_one", FAST)
+    tiled = run_catalog([tmp_path / "two"], tmp_path / "out_two", FAST)
+    assert whole.failures == [] and tiled.failures == [] and len(tiled.tiles) == 4
+    assert tiled.trees == whole.trees
+    assert assert_same_forest(tmp_path / "out_one", tmp_path / "out_two") >= 0.995
+
+
 def test_rerun_skips_complete_tiles_and_redoes_a_changed_one(stand, tmp_path):
     root, _, _ = stand
     src = tmp_path / "tiles"
