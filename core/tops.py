@@ -367,6 +367,14 @@ def _steep(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, rule: SteepApex) -> 
     return steep >= int(rule.sectors)
 
 
+def steep_tops(xy: np.ndarray, h: np.ndarray, top_xy: np.ndarray, top_h: np.ndarray,
+               rule: SteepApex) -> np.ndarray:
+    """Mask of the tops (``top_xy``, ``top_h``) the canopy of the points (``xy``, ``h``) falls away
+    from steeply, by ``rule``'s sectors and slope (the test of :class:`SteepApex`)."""
+    n = len(xy)
+    return _steep(np.r_[xy, top_xy], np.r_[h, top_h], np.arange(n, n + len(top_xy)), rule)
+
+
 def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,
                       isolation_m: Optional[float], apex: Optional[SteepApex],
                       progress: Progress, cancelled: CancelCheck, diameters=None,
@@ -487,4 +495,4 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
     return tops
 
 
-__all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "find_tree_tops"]
+__all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "find_tree_tops", "steep_tops"]

@@ -311,7 +311,7 @@ def test_the_stand_gives_one_tree_per_cone(stand):
 
 #: NormalizedCut() on resources/sample/sample.laz against sample_trees.csv (239 trees) when written (issue 19),
 #: with the tolerance of each: benchmarks/metrics.py's matching (detection within the crown, height within 30 %).
-SAMPLE_GOLDEN = {"n_detected": (238, 3), "f1": (0.9686, 0.015), "point_accuracy": (0.9233, 0.015)}
+SAMPLE_GOLDEN = {"n_detected": (233, 3), "f1": (0.9661, 0.015), "point_accuracy": (0.9281, 0.015)}
 
 
 def test_the_sample_gives_its_golden_trees(sample_laz):

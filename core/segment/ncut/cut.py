@@ -387,7 +387,7 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
               top_height: np.ndarray, params: "NormalizedCut", progress: Progress,
-              cancelled: CancelCheck) -> np.ndarray:
+              cancelled: CancelCheck, cover: np.ndarray = None, steep: np.ndarray = None) -> np.ndarray:
     """Tree id of every voxel: geodesic start, pairwise normalised cuts, merges, clean-up.
 
     1. Every voxel starts with its nearest top along the graph.
@@ -434,8 +434,11 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             dip = (low - saddle[i]) / low
             gap = np.hypot(*(graph.xyz[top_voxel[p], :2] - graph.xyz[top_voxel[q], :2]))
             reach = crown_radius_m(top_height[hi])
+            factor = params.merge_reach
+            if cover is not None and cover[hi] < params.open_cover and not steep[lo]:
+                factor = params.open_reach          # a rounded bump of an open-grown crown
             level = (top_height[hi] - low) / top_height[hi] < params.merge_plateau
-            if ((dip < params.merge_prominence and gap < params.merge_reach * reach)
+            if ((dip < params.merge_prominence and gap < factor * reach)
                     or (level and dip < 0.5 * params.merge_prominence and gap < PLATEAU_REACH * reach)):
                 # a bump inside the crown the higher top's height implies (see step 4)
                 if (dip, hi) < (partner_dip[lo], partner[lo]):

@@ -382,3 +382,40 @@ def topless_crowns(graph: VoxelGraph, height: np.ndarray, xy: np.ndarray, top_vo
     first = first[keep]
     first = first[np.lexsort((xy[first, 1], xy[first, 0], -height[first]))]
     return graph.point_voxel[first].astype(np.int64), height[first]
+
+
+def canopy_cover_at_tops(local: np.ndarray, height: np.ndarray, crown: np.ndarray,
+                         top_xy: np.ndarray, top_height: np.ndarray, reach_m: np.ndarray) -> np.ndarray:
+    """Per top: the share of the observed 1 m columns within ``reach_m`` of it whose canopy
+    reaches half the top's height.  A column is observed when any point (ground too) falls in it;
+    columns are whole metres of the local frame (anchored on a global grid by the pipeline), so
+    the value depends on the neighbourhood only, never on the tile.  Sylva, not in Hu et al."""
+    out = np.ones(len(top_xy))
+    if len(top_xy) == 0 or not crown.any():
+        return out
+    ij_all = np.floor(local[:, :2]).astype(np.int64)
+    lo = ij_all.min(axis=0)
+    shape = tuple((ij_all.max(axis=0) - lo + 1).tolist())
+    if shape[0] * shape[1] > 8 * len(local) + 4_000_000:     # a sparse extent: taken as closed
+        return out
+    observed = np.zeros(shape, dtype=bool)
+    observed[ij_all[:, 0] - lo[0], ij_all[:, 1] - lo[1]] = True
+    canopy = np.zeros(shape)
+    ij = ij_all[crown] - lo
+    np.maximum.at(canopy, (ij[:, 0], ij[:, 1]), height[crown])
+    centre = np.floor(top_xy).astype(np.int64) - lo
+    radius = np.ceil(reach_m).astype(np.int64)
+    for r in np.unique(radius):
+        g = np.arange(-r, r + 1)
+        dx, dy = np.meshgrid(g, g, indexing="ij")
+        disc = dx * dx + dy * dy <= r * r
+        which = np.flatnonzero(radius == r)
+        x = centre[which, 0][:, None] + dx[disc][None, :]
+        y = centre[which, 1][:, None] + dy[disc][None, :]
+        inside = (x >= 0) & (y >= 0) & (x < shape[0]) & (y < shape[1])
+        x, y = np.where(inside, x, 0), np.where(inside, y, 0)
+        seen = inside & observed[x, y]
+        high = seen & (canopy[x, y] >= 0.5 * top_height[which][:, None])
+        n_seen = seen.sum(axis=1)
+        out[which] = np.where(n_seen > 0, high.sum(axis=1) / np.maximum(n_seen, 1), 1.0)
+    return out

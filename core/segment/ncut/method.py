@@ -14,9 +14,10 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import TOP_TOLERANCE_M, merge_small, within_crown_reach
+from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_small, within_crown_reach
 from .cut import cut_graph
-from .graph import column_maxima, local_canopy_density, top_voxels, topless_crowns, voxel_graph
+from .graph import (canopy_cover_at_tops, column_maxima, local_canopy_density, top_voxels, topless_crowns,
+                    voxel_graph)
 
 
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
@@ -26,6 +27,13 @@ TOP_CELL_M = 0.35
 #: A tree holds at least min_tree_points points, or the canopy first returns of this many m²
 #: at the scan's density around its top when fewer (a 1.25 m crown radius: 10 points at 2 per m²).
 MIN_TREE_AREA_M2 = 5.0
+
+
+#: The canopy cover around a top (open-grown crowns) is judged within this many of its allometric
+#: crown radii, and never farther than COVER_MAX_M (inside the pipeline's 15 m buffer: any tiling
+#: gives the same value).
+COVER_REACH = 2.0
+COVER_MAX_M = 10.0
 
 
 #: At low density the steep-apex window is widened to hold this many canopy
@@ -65,6 +73,10 @@ class NormalizedCut:
     saddle, is a bump of that crown); ``merge_plateau``: two such tops whose
     heights differ by less than this fraction are one flat crown up to
     ``PLATEAU_REACH`` crown radii apart.
+    ``open_cover``, ``open_reach``: where the canopy around the higher top is
+    open (:func:`canopy_cover_at_tops` below ``open_cover``; 0: off), the
+    crown-reach merge reaches ``open_reach`` crown radii for a rounded lower
+    top (not a steep apex of the :class:`~sylva.core.tops.SteepApex` rule).
     ``understory_points``, ``understory_extent_m``: a connected piece of the
     voxel graph that no top reaches (a crown under the canopy, more than
     ``height_m`` below the crowns above it) is a tree of its own, its top the
@@ -99,6 +111,8 @@ class NormalizedCut:
     merge_reach: float = 0.7
     merge_prominence: float = 0.15
     merge_plateau: float = 0.05
+    open_cover: float = 0.6
+    open_reach: float = 0.9
     understory_points: int = 40
     understory_extent_m: float = 2.5
     min_tree_points: int = 20
@@ -120,9 +134,10 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: merge_dip must be >= 0")
         if not all(0 <= v < float("inf") for v in (self.merge_reach, self.merge_prominence, self.crown_reach,
                                                    self.min_tree_points, self.understory_points,
-                                                   self.understory_extent_m)):
+                                                   self.understory_extent_m, self.open_cover, self.open_reach)):
             raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach, min_tree_points, "
-                                 "understory_points and understory_extent_m must be >= 0 and finite")
+                                 "understory_points, understory_extent_m, open_cover and open_reach must be "
+                                 ">= 0 and finite")
         if not (0 <= self.top_window_points and 0 <= self.apex_window_m < float("inf")
                 and 0 < self.top_window_m < float("inf")):
             raise ParameterError("NormalizedCut: top_window_points and apex_window_m must be >= 0, "
@@ -166,6 +181,25 @@ class NormalizedCut:
                               cancelled=cancelled, apex=rule, diameters=wide[search],
                               apex_diameters=apex[search] if rule is not None else None)
 
+    def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel):
+        """(canopy cover around each top, whether it is a steep apex) for the open-canopy reach of the
+        crown-reach merge; (None, None) when ``open_cover`` is 0."""
+        if self.open_cover <= 0:
+            return None, None
+        reach = np.minimum(COVER_REACH * crown_radius_m(top_height), COVER_MAX_M)
+        cover = canopy_cover_at_tops(local, height, crown, graph.xyz[top_voxel, :2], top_height, reach)
+        steep = np.zeros(len(top_id), dtype=bool)
+        if self.apex_window_m > 0:
+            from ...tops import SteepApex, steep_tops
+
+            row = {int(t): i for i, t in enumerate(local_tops.tree_id)}
+            rows = np.array([row.get(int(t), -1) for t in top_id], dtype=np.int64)
+            have = np.flatnonzero(rows >= 0)          # the surface tops (not the understory's)
+            steep[have] = steep_tops(local[crown, :2], height[crown], local_tops.xy[rows[have]],
+                                     local_tops.height[rows[have]],
+                                     SteepApex(float(self.apex_window_m), self.apex_slope, int(self.apex_sectors)))
+        return cover, steep
+
     def segment(self, cloud: PointCloud, tops=None, progress: Progress = None,
                 cancelled: CancelCheck = None) -> np.ndarray:
         """Per-point tree IDs (int32, 0 = none) of a height-normalised cloud."""
@@ -201,13 +235,14 @@ class NormalizedCut:
             top_voxel = np.r_[top_voxel, extra]
             top_id = np.r_[top_id, top_id.max(initial=0) + 1 + np.arange(len(extra))]
             top_height = np.r_[top_height, extra_h]
+        cover, steep = self._openness(local, height, crown, local_tops, top_id, top_height, graph, top_voxel)
         # the minimum size of a tree, in points, at the scan's density around its top
         voxel_rho = np.zeros(graph.n)
         np.maximum.at(voxel_rho, graph.point_voxel, rho[crown])
         min_points = np.minimum(float(self.min_tree_points), MIN_TREE_AREA_M2 * voxel_rho[top_voxel])
         report(progress, 0.2, "normalised cuts")
         vlabel = cut_graph(graph, top_voxel, top_id, top_height, self,
-                           scaled(progress, 0.2, 0.95), cancelled)
+                           scaled(progress, 0.2, 0.95), cancelled, cover, steep)
         # points: crown points take their voxel's label, low points the crown above them
         labels[crown] = vlabel[graph.point_voxel]
         # nothing of a tree is higher than its top (points of a taller neighbour)
