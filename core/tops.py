@@ -337,13 +337,9 @@ def _steep(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, rule: SteepApex) -> 
         return np.zeros(0, dtype=bool)
     nsec = 8
     # the canopy surface: the highest point of every column, columns as wide as inner_m or a little less,
-    # so that they divide the anchor grid and fall on the same places whatever the tile (Sylva)
-    key = np.floor(xy / steep_column_m(rule.inner_m)).astype(np.int64)
-    key -= key.min(axis=0)
-    key = key[:, 0] * (int(key[:, 1].max()) + 1) + key[:, 1]
-    order = np.argsort(-h, kind="stable")
-    _, first = np.unique(key[order], return_index=True)
-    surf = order[first]
+    # so that they divide the anchor grid and fall on the same places whatever the tile; ties by position,
+    # not by the points' order (Sylva)
+    surf = _cell_maxima(xy, h, steep_column_m(rule.inner_m))
     near = cKDTree(xy[cand]).sparse_distance_matrix(cKDTree(xy[surf]), rule.outer_m,
                                                     output_type="ndarray")
     i, j, d = near["i"], surf[near["j"]], near["v"]

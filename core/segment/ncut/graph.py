@@ -401,8 +401,9 @@ def canopy_cover_at_tops(local: np.ndarray, height: np.ndarray, crown: np.ndarra
     observed = np.zeros(shape, dtype=bool)
     observed[ij_all[:, 0] - lo[0], ij_all[:, 1] - lo[1]] = True
     canopy = np.zeros(shape)
-    ij = ij_all[crown] - lo
-    np.maximum.at(canopy, (ij[:, 0], ij[:, 1]), height[crown])
+    sel = np.flatnonzero(crown)
+    sel = sel[column_maxima(local[sel, :2], height[sel], 1.0)]      # the highest crown point per column
+    canopy[ij_all[sel, 0] - lo[0], ij_all[sel, 1] - lo[1]] = height[sel]
     centre = np.floor(top_xy).astype(np.int64) - lo
     radius = np.ceil(reach_m).astype(np.int64)
     for r in np.unique(radius):
