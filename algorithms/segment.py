@@ -98,6 +98,10 @@ NCUT_PARAMS = method_params(NormalizedCut, {
     "top_window_points": ("canopy points per tree-top window", "On sparse clouds the tree-top window is widened "
                           "until it holds at least this many canopy first returns (2.7 m at 4.3 points/m²); 0, "
                           "or a tree-top window you set, keeps the window fixed (Sylva, not in the paper)."),
+    "top_window_crown": ("tree-top window, share of crown width", "The tree-top window is at least this share of "
+                         "the crown width Popescu & Wynne (2004) give a tree that high (CW = 2.51503 + 0.00901 h², "
+                         "metres: 2.4 m at 20 m, 4.2 m at 30 m); 0, or a tree-top window you set, turns this off "
+                         "(Sylva, not in Hu et al.)."),
     "apex_window_m": ("steep-apex window (m)", "Maxima of this narrow window also count as tree tops when the "
                       "canopy falls away steeply from them (conifer tips overtopped on one side by a taller "
                       "neighbour; Sylva, not in the paper); 0 turns this off."),
@@ -109,12 +113,13 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                           "least this many points and spans 2.5 m; smaller pieces join the nearest tree "
                           "(Sylva, not in the paper; after Hamraz et al. 2017); 0 turns this off."),
 }, advanced=("voxel_m", "radius_m", "sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour",
-             "top_window_points", "apex_window_m", "apex_slope", "apex_sectors", "understory_points"),
+             "top_window_points", "top_window_crown", "apex_window_m", "apex_slope", "apex_sectors",
+             "understory_points"),
    ranges={"voxel_m": (0.05, 10.0), "radius_m": (0.05, 50.0), "sigma_h_m": (0.01, 100.0),
            "sigma_v_m": (0.01, 100.0), "sigma_intensity": (0.001, 100.0), "sigma_colour": (0.001, 10.0),
-           "top_window_points": (0.0, 10000.0), "apex_window_m": (0.0, 20.0), "apex_slope": (0.01, 100.0),
-           "apex_sectors": (1, 8), "understory_points": (0, 1000000)},
-   prefix="Normalised cut: ", optional=("understory_points",))
+           "top_window_points": (0.0, 10000.0), "top_window_crown": (0.0, 2.0), "apex_window_m": (0.0, 20.0),
+           "apex_slope": (0.01, 100.0), "apex_sectors": (1, 8), "understory_points": (0, 1000000)},
+   prefix="Normalised cut: ", optional=("understory_points", "top_window_crown"))
 
 
 
@@ -167,7 +172,7 @@ def segmentation_method(args: dict):
     if window is not None and window == window and window > 0:   # empty (None or NaN from QGIS): the method's own
         fixed["top_window_m"] = window
         if cls is NormalizedCut:
-            fixed["top_window_points"] = 0.0   # the user's window, exactly
+            fixed["top_window_points"] = fixed["top_window_crown"] = 0.0   # the user's window, exactly
     return build_method(cls, args, **fixed)
 
 

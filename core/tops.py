@@ -468,7 +468,7 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
     misses (point clouds only).  ``diameters`` / ``apex_diameters`` (point
     clouds only, one per point, metres): each point's window (its apex window)
     is at least this wide, e.g. widened where the scan is sparse
-    (:class:`TopSearch`).
+    (:meth:`sylva.core.segment.NormalizedCut.windows`).
     """
     window = FixedWindow() if window is None else window
     if not hasattr(window, "diameter"):

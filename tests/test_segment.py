@@ -252,17 +252,21 @@ def test_canopy_cover_is_low_around_a_lone_tree_and_high_in_a_closed_canopy():
     assert cover(grid, (28.0, 28.0)) > 0.9
 
 
-def test_an_open_grown_broadleaf_crown_is_fewer_pieces():
-    """The open-canopy reach (open_cover, open_reach) on an open broadleaf stand the benchmarks do
-    not use (seed 2, 60 m): fewer trees and a better detection F1 than without it."""
+@pytest.mark.parametrize("kind, structure, density, off", [
+    ("broadleaf", "open", 20, {"open_cover": 0.0}),             # the open-canopy reach (open_cover, open_reach)
+    ("broadleaf", "medium", 50, {"top_window_crown": 0.0}),     # the crown-share tree-top window
+])
+def test_a_crown_rule_gives_fewer_pieces_and_a_better_f1(kind, structure, density, off):
+    """On a stand the benchmarks do not use (seed 2, 60 m), the rule gives fewer trees and a better
+    detection F1 than the method without it."""
     from sylva.testing import crowns, synth
     from sylva.core.terrain import normalize
 
-    stand, spec = crowns.suite_preset("broadleaf", "open", 20, seed=2, width_m=60.0)
+    stand, spec = crowns.suite_preset(kind, structure, density, seed=2, width_m=60.0)
     scan = synth.simulate_scan(stand, spec)
     cloud = normalize(scan.cloud)
     on, off = (_metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut(**v)),
-                                   scan.truth_tree, stand.trees) for v in ({}, {"open_cover": 0.0}))
+                                   scan.truth_tree, stand.trees) for v in ({}, off))
     assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"]
 
 
@@ -462,7 +466,7 @@ def test_windows_widen_at_low_density_only():
         crown = h >= 2.0
         rho = canopy_density(cloud, cloud.local_xyz(), crown)
         assert 0.5 * density < rho < 1.6 * density         # crown points per occupied m2
-        wide, apex = NormalizedCut().windows(cloud, cloud.local_xyz(), h, crown)
+        wide, apex = NormalizedCut(top_window_crown=0.0).windows(cloud, cloud.local_xyz(), h, crown)
         local = local_canopy_density(cloud, cloud.local_xyz(), crown)[crown]
         assert 0.5 * density < np.median(local) < 1.6 * density   # the neighbourhood's density
         if expect_wide:
@@ -472,7 +476,13 @@ def test_windows_widen_at_low_density_only():
                 2.0 * np.sqrt(APEX_WINDOW_POINTS / (np.pi * np.median(local))), rel=0.05)
         else:
             assert (wide[crown] == 2.0).all() and (apex[crown] == 0.8).all()
-        fixed = NormalizedCut(top_window_points=0.0, apex_window_m=0.0)
+        # Popescu & Wynne's crown width at the point's height: a floor of its own (0.4 CW > 2 m above 16.6 m)
+        allometric, _ = NormalizedCut(top_window_points=0.0).windows(cloud, cloud.local_xyz(), h, crown)
+        cw = 2.51503 + 0.00901 * h * h
+        assert np.allclose(allometric, np.maximum(2.0, 0.4 * cw)) and (allometric[h > 17.0] > 2.0).all()
+        both, _ = NormalizedCut().windows(cloud, cloud.local_xyz(), h, crown)
+        assert np.array_equal(both, np.maximum(wide, allometric))
+        fixed = NormalizedCut(top_window_points=0.0, top_window_crown=0.0, apex_window_m=0.0)
         fw, fa = fixed.windows(cloud, cloud.local_xyz(), h, crown)
         assert (fw == 2.0).all() and (fa == 0.0).all()
     # first returns only when the cloud has return numbers
@@ -483,6 +493,8 @@ def test_windows_widen_at_low_density_only():
         NormalizedCut(apex_sectors=0)
     with pytest.raises(ValueError, match="top_window_points"):
         NormalizedCut(top_window_points=-1.0)
+    with pytest.raises(ValueError, match="top_window_crown"):
+        NormalizedCut(top_window_crown=float("nan"))
 
 
 def test_steep_apex_rule_is_wired_into_the_top_search():

@@ -40,7 +40,10 @@ Steps
    ``benchmarks/segmentation.py``: at low point density the window is
    widened until it holds ``top_window_points`` canopy points (first returns
    per m² of canopy, so a local maximum is not a sampling accident: 2.7 m on
-   lidR's MixedConifer at 4.3 points/m²), and the steep-apex rule
+   lidR's MixedConifer at 4.3 points/m²) and at least ``top_window_crown``
+   (0.4) x the crown width of Popescu & Wynne's (2004) allometry at the
+   point's height (their variable window, narrowed: a bump on a broad crown
+   is not a top, a neighbour is rarely nearer), and the steep-apex rule
    (:class:`sylva.core.tops.SteepApex`: ``apex_window_m``, ``apex_slope``,
    ``apex_sectors``) adds the tips of narrow conifers that a taller
    neighbour overtops within the window, the main loss of recall in dense

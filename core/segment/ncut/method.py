@@ -57,6 +57,10 @@ class NormalizedCut:
     means the default.
     ``top_window_points``: at low point density the window is widened so that
     it holds at least this many canopy first returns (0 keeps ``top_window_m``).
+    ``top_window_crown``: the window is at least this share of the crown width
+    Popescu & Wynne's (2004) allometry gives a tree as high as the point
+    (:func:`~.cleanup.crown_radius_m`): their variable window, narrowed because
+    the cuts merge surplus tops (0: off).
     ``apex_window_m``, ``apex_slope``, ``apex_sectors``: the steep-apex rule
     (:class:`sylva.core.tops.SteepApex`): a maximum of this narrow window is a
     top too when the canopy drops at least ``apex_slope`` m per m from it in
@@ -102,6 +106,7 @@ class NormalizedCut:
     min_height_m: float = MIN_TREE_HEIGHT_M
     top_window_m: float = 2.0
     top_window_points: float = 25.0
+    top_window_crown: float = 0.4
     apex_window_m: float = 0.8
     apex_slope: float = 3.0
     apex_sectors: int = 5
@@ -138,10 +143,10 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach, min_tree_points, "
                                  "understory_points, understory_extent_m, open_cover and open_reach must be "
                                  ">= 0 and finite")
-        if not (0 <= self.top_window_points and 0 <= self.apex_window_m < float("inf")
-                and 0 < self.top_window_m < float("inf")):
-            raise ParameterError("NormalizedCut: top_window_points and apex_window_m must be >= 0, "
-                                 "top_window_m positive and finite")
+        if not (0 <= self.top_window_points and 0 <= self.top_window_crown < float("inf")
+                and 0 <= self.apex_window_m < float("inf") and 0 < self.top_window_m < float("inf")):
+            raise ParameterError("NormalizedCut: top_window_points, top_window_crown and apex_window_m must be "
+                                 ">= 0, top_window_m positive and finite")
         if self.apex_window_m > 0 and not (0 < self.apex_slope < float("inf") and 1 <= self.apex_sectors <= 8):
             raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
 
@@ -153,12 +158,16 @@ class NormalizedCut:
         ``APEX_WINDOW_POINTS`` canopy first returns, by the canopy density
         around the point (:func:`local_canopy_density`: a neighbourhood of
         fixed size, never a statistic of the tile, so any tiling gives the same
-        windows).  An apex window as wide as the top window adds nothing."""
+        windows), and the top window to ``top_window_crown`` x the allometric
+        crown width at the point's height.  An apex window as wide as the top
+        window adds nothing."""
         if density is None:
             density = local_canopy_density(cloud, local, crown)
         wide = np.full(len(local), float(self.top_window_m))
         if self.top_window_points > 0:
             wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
+        if self.top_window_crown > 0:
+            wide = np.maximum(wide, self.top_window_crown * 2.0 * crown_radius_m(height))
         apex = np.zeros(len(local))
         if self.apex_window_m > 0:
             apex = np.maximum(float(self.apex_window_m),
