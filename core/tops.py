@@ -260,11 +260,12 @@ def _local_maxima(xy: np.ndarray, h: np.ndarray, window: Window,
     radius = window.diameter(h[cand]) / 2.0
     if diameters is not None:
         radius = np.maximum(radius, np.asarray(diameters)[cand] / 2.0)
-    # points bucketed in square cells at least as wide as the widest window
-    # radius (and few enough cells for the extent), CSR by cell
+    # points bucketed in square cells half as wide as the median window radius (a wider window scans
+    # more cells: one widest window, e.g. a tall tree's allometric one, does not make every search
+    # scan its area), and few enough cells for the extent, CSR by cell
     lo, hi = column_bounds(xy)
     span = np.maximum(hi - lo, 1e-6)
-    cell = max(float(radius.max()), float(np.sqrt(span[0] * span[1] / (2.0 * len(xy) + 1024))), 1e-3)
+    cell = max(0.5 * float(np.median(radius)), float(np.sqrt(span[0] * span[1] / (2.0 * len(xy) + 1024))), 1e-3)
     nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
     order, starts, _ = grid_buckets(xy, float(lo[0]), float(lo[1]), cell, nx, ny)
     pts = np.ascontiguousarray(xy[order])
