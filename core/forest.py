@@ -12,7 +12,9 @@ scaled so the stem at the base has the tree's DBH) and becomes a mesh and
 leaf cards (:mod:`sylva.core.geometry`, :mod:`sylva.core.leaves`).
 
 Trees with fewer than ``min_points`` points are not dropped: they get the
-minimal stem the reconstruction gives them and ``quality = "noise"``.
+minimal stem the reconstruction gives them and ``quality = "noise"``; trees with fewer than
+:data:`~sylva.core.tops.MIN_TREE_POINTS` (20) points, which a segmentation keeps only where the scan is
+sparse, get ``quality = "sparse"`` (their height, crown and model rest on few echoes).
 
 Every tree also gets a quantitative structure model (:class:`~sylva.core.qsm.QSM`,
 TreeQSM-like cylinder and branch tables, ``ModelledTree.qsm``): for the
@@ -44,6 +46,7 @@ from .measure import TreeMetrics, estimate_dbhs
 from .progress import CancelCheck, Progress, check, report
 from .qsm import measure_qsm, skeleton_qsms
 from .reconstruct import Hybrid, TreePoints, is_dense_scan, reconstruct_tree
+from .tops import MIN_TREE_POINTS
 
 LEAVES = ("auto", "broadleaf", "needles", "none")
 
@@ -386,7 +389,7 @@ def _model_forest(cloud, pts, pt_off, work, metrics, options: ModelOptions, fitt
             qsm, qsm_method = w[4], ("fitted_cylinders" if t in fitted else "bspline_cylinders")
             qsm.dbh_m, qsm.dbh_source = float(dbh), source
         record = _record(w, dbh, source, bases[t], len(bset) - 1, lengths[t], volumes[t], kinds[t], qsm, qsm_method,
-                         bounds[t + 1] - bounds[t] < options.min_points)
+                         bounds[t + 1] - bounds[t], options.min_points)
         out.append(ModelledTree(w[0], nodes[a].copy(), trusted_skeleton(nodes[a:b], local_parent[a:b], radii[a:b],
                                                                         added[a:b]), None, None, record, qsm, bset))
     return out, (shifted, radii, off, bs_b, bs_c)
@@ -446,9 +449,11 @@ def _forest_measures(nodes, parent, radii, bs, off, branch_off):
             [float(volume[t]) if two[t] else 0.0 for t in range(nt)])
 
 
-def _record(w, dbh, source, base, n_branches, length, volume, kind, qsm, qsm_method, noise) -> dict:
-    """The record (trees table row) of one tree of :func:`model_trees`."""
+def _record(w, dbh, source, base, n_branches, length, volume, kind, qsm, qsm_method, n_points, min_points) -> dict:
+    """The record (trees table row) of one tree of :func:`model_trees` (``n_points``: its points)."""
     tree_id, rec = w[0], w[3]
+    quality = ("noise" if n_points < min_points else "sparse" if n_points < MIN_TREE_POINTS
+               else "fallback" if "fallback" in rec.flags else "ok")
     return {
         "tree_id": int(tree_id),
         "base_x": float(base[0]), "base_y": float(base[1]), "base_z": float(base[2]),
@@ -458,7 +463,7 @@ def _record(w, dbh, source, base, n_branches, length, volume, kind, qsm, qsm_met
         "wood_volume": volume,
         "method": rec.method,
         "visited_fraction": float(rec.visited_fraction),
-        "quality": "noise" if noise else ("fallback" if "fallback" in rec.flags else "ok"),
+        "quality": quality,
         "leaves": kind,
         "flags": ",".join(rec.flags),
         "qsm_method": qsm_method,

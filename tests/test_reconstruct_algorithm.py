@@ -33,7 +33,9 @@ def test_every_tree_gets_a_model(segmented_corner, tmp_path):
     ids = set(np.unique(labels[labels > 0]))
     assert set(trees.columns["tree_id"]) == ids  # none dropped
     assert set(trees.columns["method"]) <= {"greedy_skeleton", "guided_growth"}
-    assert set(trees.columns["quality"]) <= {"ok", "fallback", "noise"}
+    assert set(trees.columns["quality"]) <= {"ok", "fallback", "sparse", "noise"}
+    n_points = np.bincount(labels[labels > 0])[trees.columns["tree_id"]]
+    assert np.array_equal(trees.columns["quality"] == "sparse", (n_points >= 10) & (n_points < 20))
     ok = trees.columns["quality"] != "noise"
     assert np.all(trees.columns["wood_volume"][ok] > 0) and np.all(trees.columns["dbh"][ok] > 0.02)
     assert set(trees.columns["dbh_source"]) <= {"measured", "allometric"}

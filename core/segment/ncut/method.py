@@ -12,7 +12,7 @@ import numpy as np
 from ...errors import ParameterError
 from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
-from ...tops import MIN_TREE_HEIGHT_M
+from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_small, within_crown_reach
 from .cut import cut_graph
@@ -120,7 +120,7 @@ class NormalizedCut:
     open_reach: float = 0.9
     understory_points: int = 40
     understory_extent_m: float = 2.5
-    min_tree_points: int = 20
+    min_tree_points: int = MIN_TREE_POINTS
     crown_reach: float = 1.25
     climb: float = 100.0
     attach_m: float = 2.0
