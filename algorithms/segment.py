@@ -97,7 +97,7 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                      "ignored without RGB."),
     "top_window_points": ("canopy points per tree-top window", "On sparse clouds the tree-top window is widened "
                           "until it holds at least this many canopy first returns (2.7 m at 4.3 points/m²); 0, "
-                          "or a tree-top window you set, keeps the window fixed (Sylva, not in the paper)."),
+                          "or a tree-top window you set, turns this off (Sylva, not in the paper)."),
     "top_window_crown": ("tree-top window, share of crown width", "The tree-top window is at least this share of "
                          "the crown width Popescu & Wynne (2004) give a tree that high (CW = 2.51503 + 0.00901 h², "
                          "metres: 2.4 m at 20 m, 4.2 m at 30 m); 0, or a tree-top window you set, turns this off "

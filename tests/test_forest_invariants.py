@@ -574,6 +574,18 @@ def test_crown_spread_kernel_is_the_numpy_percentiles():
                                    rtol=1e-12, err_msg=str(k))
 
 
+def test_quality_says_sparse_or_noise_by_the_points_of_a_tree(monkeypatch):
+    """A tree under MIN_TREE_POINTS (20) points is "sparse" in the trees table, under min_points (10) "noise"."""
+    cloud, labels, metrics, skeletons = forest_inputs()
+    for tree, keep in ((1, 15), (2, 5)):
+        labels[np.flatnonzero(labels == tree)[keep:]] = 0
+    monkeypatch.setattr(F, "reconstruct_tree", _fake_reconstruct(skeletons))
+    quality = {t.tree_id: t.record["quality"] for t in F.model_trees(cloud, labels, metrics,
+                                                                      F.ModelOptions(method=object(), lod=0))}
+    assert quality[1] == "sparse" and quality[2] == "noise"
+    assert len(quality) > 2 and {q for t, q in quality.items() if t > 2} <= {"ok", "fallback"}
+
+
 if __name__ == "__main__":
     import tempfile
 
@@ -586,14 +598,3 @@ if __name__ == "__main__":
     else:
         print("changed:", same_outputs(digests, json.loads(GOLDEN.read_text())))
 
-
-def test_quality_says_sparse_or_noise_by_the_points_of_a_tree(monkeypatch):
-    """A tree under MIN_TREE_POINTS (20) points is "sparse" in the trees table, under min_points (10) "noise"."""
-    cloud, labels, metrics, skeletons = forest_inputs()
-    for tree, keep in ((1, 15), (2, 5)):
-        labels[np.flatnonzero(labels == tree)[keep:]] = 0
-    monkeypatch.setattr(F, "reconstruct_tree", _fake_reconstruct(skeletons))
-    quality = {t.tree_id: t.record["quality"] for t in F.model_trees(cloud, labels, metrics,
-                                                                      F.ModelOptions(method=object(), lod=0))}
-    assert quality[1] == "sparse" and quality[2] == "noise"
-    assert len(quality) > 2 and {q for t, q in quality.items() if t > 2} <= {"ok", "fallback"}

@@ -56,7 +56,7 @@ class NormalizedCut:
     no tops are given (small on purpose: the cuts merge surplus tops); None
     means the default.
     ``top_window_points``: at low point density the window is widened so that
-    it holds at least this many canopy first returns (0 keeps ``top_window_m``).
+    it holds at least this many canopy first returns (0: off).
     ``top_window_crown``: the window is at least this share of the crown width
     Popescu & Wynne's (2004) allometry gives a tree as high as the point
     (:func:`~.cleanup.crown_radius_m`): their variable window, narrowed because
