@@ -399,7 +399,8 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
        as they are (no eigenproblem).
     4. Pairs whose best cut (Fiedler split or start boundary) costs more than
        ``always_merge_ncut``, or more than ``merge_ncut`` with a dip to the
-       saddle below ``merge_dip`` x the lower top, are one tree with two local
+       saddle below ``merge_dip`` x the lower top (and the lower top at least
+       ``merge_height_ratio`` x the higher, or no summit), are one tree with two local
        maxima: the lower top is merged into the higher one (which keeps its
        id); a lower top with several such neighbours joins only the one across
        the highest saddle.  The other
@@ -438,7 +439,10 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             if cover is not None and cover[hi] < params.open_cover and not steep[lo]:
                 factor = params.open_reach          # a rounded bump of an open-grown crown
             level = (top_height[hi] - low) / top_height[hi] < params.merge_plateau
-            if ((dip < params.merge_prominence and gap < factor * reach)
+            # a summit markedly lower than its neighbour's is the apex of a tree of a lower crown class
+            # (see step 4); a lower "top" rising nowhere above the saddle is no summit but a crown's flank
+            apart = low < params.merge_height_ratio * top_height[hi] and dip > 0
+            if not apart and ((dip < params.merge_prominence and gap < factor * reach)
                     or (level and dip < 0.5 * params.merge_prominence and gap < PLATEAU_REACH * reach)):
                 # a bump inside the crown the higher top's height implies (see step 4)
                 if (dip, hi) < (partner_dip[lo], partner[lo]):
@@ -457,7 +461,7 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             x = _fiedler(pair, start)
             side_a, ncut = _best_split(pair, x, ia, ib)
             best = min(ncut, ncut_now)   # the start boundary is a candidate cut too
-            if best > params.always_merge_ncut or (best > params.merge_ncut
+            if best > params.always_merge_ncut or (not apart and best > params.merge_ncut
                                                    and dip < params.merge_dip):
                 if (dip, hi) < (partner_dip[lo], partner[lo]):   # the highest saddle wins
                     partner[lo], partner_dip[lo] = hi, dip

@@ -77,6 +77,10 @@ class NormalizedCut:
     saddle, is a bump of that crown); ``merge_plateau``: two such tops whose
     heights differ by less than this fraction are one flat crown up to
     ``PLATEAU_REACH`` crown radii apart.
+    ``merge_height_ratio``: a lower top under this fraction of the higher
+    top's height that rises above their saddle is the apex of a tree of a
+    lower crown class, not a bump of the higher crown: only a cut dearer than
+    ``always_merge_ncut`` merges it (0: off).
     ``open_cover``, ``open_reach``: where the canopy around the higher top is
     open (:func:`canopy_cover_at_tops` below ``open_cover``; 0: off), the
     crown-reach merge reaches ``open_reach`` crown radii for a rounded lower
@@ -116,6 +120,7 @@ class NormalizedCut:
     merge_reach: float = 0.7
     merge_prominence: float = 0.15
     merge_plateau: float = 0.05
+    merge_height_ratio: float = 0.8
     open_cover: float = 0.6
     open_reach: float = 0.9
     understory_points: int = 40
@@ -139,10 +144,11 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: merge_dip must be >= 0")
         if not all(0 <= v < float("inf") for v in (self.merge_reach, self.merge_prominence, self.crown_reach,
                                                    self.min_tree_points, self.understory_points,
-                                                   self.understory_extent_m, self.open_cover, self.open_reach)):
+                                                   self.understory_extent_m, self.open_cover, self.open_reach,
+                                                   self.merge_height_ratio)):
             raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach, min_tree_points, "
-                                 "understory_points, understory_extent_m, open_cover and open_reach must be "
-                                 ">= 0 and finite")
+                                 "understory_points, understory_extent_m, open_cover, open_reach and "
+                                 "merge_height_ratio must be >= 0 and finite")
         if not (0 <= self.top_window_points and 0 <= self.top_window_crown < float("inf")
                 and 0 <= self.apex_window_m < float("inf") and 0 < self.top_window_m < float("inf")):
             raise ParameterError("NormalizedCut: top_window_points, top_window_crown and apex_window_m must be "
