@@ -31,6 +31,11 @@ SETTLED_NCUT = 0.05
 #: Reach (x the allometric crown radius) of the plateau merge (two tops of nearly one height).
 PLATEAU_REACH = 1.3
 
+#: The canopy around a top is closed where it covers this share of the ground
+#: (:func:`~.graph.canopy_cover_at_tops`): there two tops of one height are one
+#: crown only across a saddle of the graph (step 4 of :mod:`sylva.core.segment.ncut`).
+CLOSED_COVER = 0.75
+
 
 # --------------------------------------------------------------------------- cuts
 
@@ -378,6 +383,35 @@ def _group_max(group, values, n):
     return out
 
 
+def unjoined_plateaus(xy: np.ndarray, height: np.ndarray, touching: np.ndarray, plateau: float,
+                      cover: np.ndarray, steep: np.ndarray):
+    """(higher, lower) top indices of the flat crowns the graph does not join (step 4).
+
+    Pairs of tops whose regions do not touch (``touching``: the (p, q), p < q,
+    of the regions that do), whose heights differ by less than ``plateau`` x
+    the higher, the lower within :data:`PLATEAU_REACH` allometric crown radii
+    of the higher (:func:`crown_radius_m`), both rounded (not ``steep``), the
+    canopy around the higher not closed (``cover`` below :data:`CLOSED_COVER`);
+    sorted.  Sylva, not in Hu et al."""
+    k = len(height)
+    if k < 2:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    from scipy.spatial import cKDTree
+
+    reach = PLATEAU_REACH * crown_radius_m(height)
+    near = cKDTree(xy).query_pairs(float(reach.max()), output_type="ndarray").astype(np.int64)
+    p, q = near.min(axis=1), near.max(axis=1)
+    if len(touching):
+        keep = ~np.isin(p * k + q, touching[:, 0].astype(np.int64) * k + touching[:, 1])
+        p, q = p[keep], q[keep]
+    hi = np.where(height[p] >= height[q], p, q)          # the order of cut_graph: ties to the first top
+    lo = p + q - hi
+    ok = ((height[hi] - height[lo]) < plateau * height[hi]) & ~steep[hi] & ~steep[lo] \
+        & (cover[hi] < CLOSED_COVER) & (np.hypot(*(xy[hi] - xy[lo]).T) < reach[hi])
+    order = np.lexsort((hi[ok], lo[ok]))
+    return hi[ok][order], lo[ok][order]
+
+
 def _find(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -472,6 +506,13 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             moved = (new != region[nodes]) & (ncut < best_ncut[nodes])
             proposal[nodes[moved]] = new[moved]
             best_ncut[nodes[moved]] = ncut
+    if cover is not None and params.merge_plateau > 0:
+        # flat crowns whose tops the graph does not join: as deep as a saddle can be (dip 1), so any
+        # merge across a saddle comes first
+        for hi, lo in zip(*unjoined_plateaus(graph.xyz[top_voxel, :2], top_height, pairs,
+                                             params.merge_plateau, cover, steep)):
+            if (1.0, hi) < (partner_dip[lo], partner[lo]):
+                partner[lo], partner_dip[lo] = hi, 1.0
     for lo in np.flatnonzero(partner >= 0):
         rp, rq = _find(parent, int(lo)), _find(parent, int(partner[lo]))
         if rp != rq:

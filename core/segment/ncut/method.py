@@ -76,7 +76,9 @@ class NormalizedCut:
     radius, rising less than ``merge_prominence`` x its height above the
     saddle, is a bump of that crown); ``merge_plateau``: two such tops whose
     heights differ by less than this fraction are one flat crown up to
-    ``PLATEAU_REACH`` crown radii apart.
+    ``PLATEAU_REACH`` crown radii apart, also when their regions do not
+    touch if both are rounded and the canopy is not closed
+    (:func:`~.cut.unjoined_plateaus`; needs ``open_cover`` > 0).
     ``merge_height_ratio``: a lower top under this fraction of the higher
     top's height that rises above their saddle is the apex of a tree of a
     lower crown class, not a bump of the higher crown: only a cut dearer than
