@@ -148,9 +148,11 @@ Steps
    0.969 -> 0.966 lose.
    **Crown classes** (Sylva, not in Hu et al.): a lower top under
    ``merge_height_ratio`` (0.8) x the higher top's height that rises above
-   their saddle is merged only by a cut dearer than ``always_merge_ncut``
-   (Eq. 1 alone), by no other rule (a "top" below the saddle is a point of
-   the crown's flank, merged as before).
+   their saddle and stands beyond ``UNDER_CROWN`` (0.5) of the higher
+   crown's allometric radius is merged only by a cut dearer than
+   ``always_merge_ncut`` (Eq. 1 alone), by no other rule (a "top" below the
+   saddle, or under the higher crown, where a tree of its own would be
+   hidden, is a bump of that crown's flank and is merged as before).
    Surplus tops of one crown (second leaders, leaf clumps, a flat crown's
    bumps) stand near its apex height, while a top a fifth lower is the apex
    of a tree of a lower crown class (Kraft's 1884 dominant / co-dominant /
@@ -159,15 +161,16 @@ Steps
    stands of the suite and MixedConifer (each merge right when both tops'
    voxels belong to one true tree): the rules' right merges join tops at
    0.93-0.99 of the higher top (median per stand), their wrong merges in
-   the dense stands at 0.69-0.85; the cap avoids 36 wrong merges in the
-   dense conifers at 20 points/m2 and loses 1 right one.  With
+   the dense stands at 0.69-0.85; the cap blocks 85 wrong merges and 10
+   right ones (dense conifers at 20 / 50 points/m2: 19 / 23 wrong, 0 right;
+   MixedConifer, lidR's trees as the reference: 1 wrong, 3 right).  With
    ``benchmarks/segmentation.py`` (all 36 stands, seed 0): dense conifers
-   at 5 / 20 / 50 points/m2 0.864 / 0.882 / 0.866 -> 0.871 / 0.907 / 0.890,
+   at 5 / 20 / 50 points/m2 0.864 / 0.882 / 0.866 -> 0.871 / 0.910 / 0.891,
    dense broadleaves at 20 0.761 -> 0.772, the shipped sample 0.966 ->
-   0.971; open and medium mixed stands and open broadleaves at 50 lose up
+   0.973; open and medium mixed stands and open broadleaves at 50 lose up
    to 0.009; mean 0.859 -> 0.862; MixedConifer unchanged (284 trees).  On
    the ``--variants`` panel at seed 1: dense conifers 0.869 -> 0.885, the
-   open conifers at 5 points/m2 0.996 -> 0.984, the others within 0.006.
+   others within 0.006.
 5. **Clean-up and points.** Nothing of a tree lies above its top; voxels cut
    off from their top go to the neighbour they are most strongly joined to;
    crown pieces a sparse scan left unconnected join the nearest tree within

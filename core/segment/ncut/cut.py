@@ -31,6 +31,10 @@ SETTLED_NCUT = 0.05
 #: Reach (x the allometric crown radius) of the plateau merge (two tops of nearly one height).
 PLATEAU_REACH = 1.3
 
+#: A lower top within this many allometric crown radii of a higher one lies under its crown: a
+#: bump of it, whatever its height (step 4 of :mod:`sylva.core.segment.ncut`).
+UNDER_CROWN = 0.5
+
 #: The canopy around a top is closed where it covers this share of the ground
 #: (:func:`~.graph.canopy_cover_at_tops`): there two tops of one height are one
 #: crown only across a saddle of the graph (step 4 of :mod:`sylva.core.segment.ncut`).
@@ -474,8 +478,10 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
                 factor = params.open_reach          # a rounded bump of an open-grown crown
             level = (top_height[hi] - low) / top_height[hi] < params.merge_plateau
             # a summit markedly lower than its neighbour's is the apex of a tree of a lower crown class
-            # (see step 4); a lower "top" rising nowhere above the saddle is no summit but a crown's flank
-            apart = low < params.merge_height_ratio * top_height[hi] and dip > 0
+            # (see step 4); a lower "top" rising nowhere above the saddle, or under the higher crown, is
+            # a bump of that crown's flank
+            apart = (low < params.merge_height_ratio * top_height[hi] and dip > 0
+                     and gap >= UNDER_CROWN * reach)
             if not apart and ((dip < params.merge_prominence and gap < factor * reach)
                     or (level and dip < 0.5 * params.merge_prominence and gap < PLATEAU_REACH * reach)):
                 # a bump inside the crown the higher top's height implies (see step 4)

@@ -80,9 +80,10 @@ class NormalizedCut:
     touch if both are rounded and the canopy is not closed
     (:func:`~.cut.unjoined_plateaus`; needs ``open_cover`` > 0).
     ``merge_height_ratio``: a lower top under this fraction of the higher
-    top's height that rises above their saddle is the apex of a tree of a
-    lower crown class, not a bump of the higher crown: only a cut dearer than
-    ``always_merge_ncut`` merges it (0: off).
+    top's height that rises above their saddle, beyond ``UNDER_CROWN`` crown
+    radii of it, is the apex of a tree of a lower crown class, not a bump of
+    the higher crown: only a cut dearer than ``always_merge_ncut`` merges it
+    (0: off).
     ``open_cover``, ``open_reach``: where the canopy around the higher top is
     open (:func:`canopy_cover_at_tops` below ``open_cover``; 0: off), the
     crown-reach merge reaches ``open_reach`` crown radii for a rounded lower
