@@ -14,7 +14,7 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_small, within_crown_reach
+from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_off_centre, merge_small, within_crown_reach
 from .cut import cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, local_canopy_density, top_voxels, topless_crowns,
                     voxel_graph)
@@ -285,6 +285,11 @@ class NormalizedCut:
             labels[low] = label_columns_below(
                 column_keys(ixv, iyv), izv * self.voxel_m, vlabel[has].astype(np.int32),
                 q, height[low])
+        # pieces of a crown: a tree's apex is near its crown's centre
+        steep_id = np.zeros(int(top_id.max()) + 1, dtype=bool)
+        steep_id[top_id] = steep
+        xy = local[:, :2]
+        labels = merge_off_centre(xy, height, labels, steep_id, (*xy.min(axis=0), *xy.max(axis=0)))
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
