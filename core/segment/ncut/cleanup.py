@@ -161,17 +161,15 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
         return labels
     tid, txy, th = _tops_of(xy, height, labels)
     size = int(labels.max()) + 1
-    pos = np.zeros(size, dtype=np.int64)
-    pos[tid] = np.arange(len(tid))
-    sel = np.flatnonzero(labels > 0)
-    p = pos[labels[sel]]
-    upper = height[sel] >= CROWN_TOP_SHARE * th[p]
-    sel, p = sel[upper], p[upper]
-    w = np.bincount(p, minlength=len(tid)).astype(np.float64)
-    cx = np.bincount(p, weights=xy[sel, 0], minlength=len(tid)) / w
-    cy = np.bincount(p, weights=xy[sel, 1], minlength=len(tid)) / w
-    ms = np.bincount(p, weights=(xy[sel, 0] - cx[p]) ** 2 + (xy[sel, 1] - cy[p]) ** 2,
-                     minlength=len(tid)) / w
+    top_h = np.zeros(size)
+    top_h[tid] = th
+    w, sx, sy, sq = _crown_moments(np.ascontiguousarray(xy[:, 0], dtype=np.float64),
+                                   np.ascontiguousarray(xy[:, 1], dtype=np.float64),
+                                   np.ascontiguousarray(height, dtype=np.float64),
+                                   np.ascontiguousarray(labels, dtype=np.int64), top_h, CROWN_TOP_SHARE)
+    w, sx, sy, sq = w[tid], sx[tid], sy[tid], sq[tid]
+    cx, cy = sx / w, sy / w
+    ms = np.maximum(sq / w - cx * cx - cy * cy, 0.0)
     lean = np.column_stack([cx - txy[:, 0], cy - txy[:, 1]])
     off = np.hypot(lean[:, 0], lean[:, 1])
     r = crown_radius_m(th)
@@ -201,6 +199,26 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     out = labels.copy()
     out[move] = target[labels[move]]
     return out
+
+
+@njit
+def _crown_moments(x, y, h, labels, top_h, share):
+    """Per label: the count, sum of x, sum of y and sum of x² + y² of its points at least ``share``
+    x its top's height ``top_h[label]`` high (one pass; the crown moments of :func:`merge_off_centre`)."""
+    size = len(top_h)
+    w = np.zeros(size)
+    sx = np.zeros(size)
+    sy = np.zeros(size)
+    sq = np.zeros(size)
+    for i in range(len(labels)):
+        lab = labels[i]
+        if lab <= 0 or h[i] < share * top_h[lab]:
+            continue
+        w[lab] += 1.0
+        sx[lab] += x[i]
+        sy[lab] += y[i]
+        sq[lab] += x[i] * x[i] + y[i] * y[i]
+    return w, sx, sy, sq
 
 
 def crown_radius_m(height_m):

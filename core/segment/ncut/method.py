@@ -289,7 +289,8 @@ class NormalizedCut:
         steep_id = np.zeros(int(top_id.max()) + 1, dtype=bool)
         steep_id[top_id] = steep
         xy = local[:, :2]
-        labels = merge_off_centre(xy, height, labels, steep_id, (*xy.min(axis=0), *xy.max(axis=0)))
+        bounds = (xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max())
+        labels = merge_off_centre(xy, height, labels, steep_id, bounds)
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
