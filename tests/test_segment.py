@@ -729,3 +729,37 @@ def test_geodesic_partition_equals_scipy_dijkstra():
     expected = lookup[np.where(src >= 0, src, g.n)]
     got = _geodesic_partition(g, tops, 100.0)
     assert (got >= 0).mean() > 0.5 and np.array_equal(got, expected)
+
+
+def test_top_voxels_are_the_nearest_voxels_of_the_whole_graph():
+    """top_voxels searches only the voxels of columns near a top (_voxels_near): every top gets the
+    voxel a k-d tree of all voxels gives it (nearest within max(radius_m, 2 voxels)), tops farther
+    from every voxel get none."""
+    from scipy.spatial import cKDTree
+    from sylva.core.segment.base import LocalTops, ground_mask
+    from sylva.core.segment.ncut import voxel_graph
+    from sylva.core.segment.ncut.graph import _voxels_near, top_voxels
+
+    cloud, _ = cones(TOUCHING, (24, 20), density=30.0)
+    h = cloud.attrs["height"]
+    crown = (h >= 2.0) & ~ground_mask(cloud, h)
+    params = NormalizedCut()
+    g = voxel_graph(cloud, cloud.local_xyz(), h, crown, params)
+    rng = np.random.default_rng(4)
+    xyz = g.xyz[rng.choice(g.n, 40, replace=False)] + rng.normal(0.0, 0.6, (40, 3))
+    xyz[:5] += [0.0, 0.0, 5.0]                      # above the canopy: no voxel within reach
+    xyz[5:8, :2] -= 30.0                            # beyond the voxel grid
+    order = np.argsort(-xyz[:, 2], kind="stable")
+    tops = LocalTops(xy=xyz[order, :2], height=xyz[order, 2], tree_id=np.arange(1, 41))
+    vox, ids, _ = top_voxels(g, tops, params)
+    dist, expected = cKDTree(g.xyz).query(xyz[order], distance_upper_bound=max(params.radius_m, 2 * params.voxel_m))
+    ok = np.isfinite(dist)
+    assert 20 < ok.sum() < 40
+    _, first = np.unique(expected[ok], return_index=True)     # one top per voxel: the first (highest)
+    keep = np.flatnonzero(ok)[np.sort(first)]
+    assert np.array_equal(ids, keep + 1) and np.array_equal(vox, expected[keep])
+    # every voxel within reach of a top is searched
+    limit = max(params.radius_m, 2 * params.voxel_m)
+    within = np.unique(np.concatenate(cKDTree(g.xyz).query_ball_point(xyz, limit)).astype(np.int64))
+    searched = _voxels_near(g, xyz, limit, params.voxel_m)
+    assert len(within) > 100 and np.isin(within, searched).all() and len(searched) < g.n

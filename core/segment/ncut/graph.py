@@ -321,16 +321,39 @@ def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> f
     return len(xy) / cells
 
 
+def _voxels_near(graph: VoxelGraph, xyz: np.ndarray, limit: float, pitch: float) -> np.ndarray:
+    """Indices of the voxels in a column within ``limit`` of a point of ``xyz`` (local metres, z the
+    height) and at most ``limit`` below the lowest such point, ascending: a superset of the voxels
+    within ``limit`` of a point (a k-d tree of these, not of millions of voxels).  All voxels when
+    the voxel grid's extent is too sparse for a column grid."""
+    ij = graph.ijk[:, :2]
+    if graph.n == 0 or len(xyz) == 0:
+        return np.arange(graph.n)
+    shape = ij.max(axis=0) + 1
+    if shape[0] * shape[1] > 8 * graph.n + 4_000_000:
+        return np.arange(graph.n)
+    r = int(np.ceil(limit / pitch)) + 1          # columns within limit (+1: a point anywhere in its cell)
+    col = np.floor(xyz[:, :2] / pitch).astype(np.int64) - graph.ij0
+    keep = ((col >= -r) & (col < shape + r)).all(axis=1)
+    col, low = col[keep] + 2 * r, xyz[keep, 2] - limit
+    floor = np.full((int(shape[0]) + 4 * r, int(shape[1]) + 4 * r), np.inf)
+    for dx in range(-r, r + 1):
+        for dy in range(-r, r + 1):
+            np.minimum.at(floor, (col[:, 0] + dx, col[:, 1] + dy), low)
+    return np.flatnonzero(graph.xyz[:, 2] >= floor[ij[:, 0] + 2 * r, ij[:, 1] + 2 * r])
+
+
 def top_voxels(graph: VoxelGraph, tops, params: "NormalizedCut"):
     """The voxel of each tree top (nearest voxel mean, 3-D); tops without one are dropped.
 
     When several tops fall on one voxel, the first (highest, by TreeTops order) keeps it.
     """
-    tree = cKDTree(graph.xyz)
     q = np.column_stack([tops.xy, tops.height])
     limit = max(params.radius_m, 2.0 * params.voxel_m)
-    dist, vox = tree.query(q, distance_upper_bound=limit)
+    near = _voxels_near(graph, q, limit, params.voxel_m)
+    dist, vox = cKDTree(graph.xyz[near]).query(q, distance_upper_bound=limit)
     ok = np.isfinite(dist)
+    vox[ok] = near[vox[ok]]
     order = np.lexsort((np.arange(len(q)), -tops.height))
     order = order[ok[order]]
     vox_sorted = vox[order]
