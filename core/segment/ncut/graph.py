@@ -215,6 +215,17 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
     return indptr, indices, data, ea, eb, ew
 
 
+def coord_min(a: np.ndarray) -> np.ndarray:
+    """Minimum of each coordinate of (n, k) points, one 1-D reduction per coordinate (numpy's
+    ``min(axis=0)`` on a tall narrow array is several times slower)."""
+    return np.array([a[:, k].min() for k in range(a.shape[1])])
+
+
+def coord_max(a: np.ndarray) -> np.ndarray:
+    """Maximum of each coordinate of (n, k) points (see :func:`coord_min`)."""
+    return np.array([a[:, k].max() for k in range(a.shape[1])])
+
+
 def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     """Indices of the highest point of every ``cell_m`` column (ties: the lowest index).
 
@@ -226,7 +237,7 @@ def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     if len(xy) == 0:
         return np.zeros(0, dtype=np.int64)
     ij = np.floor(xy / cell_m).astype(np.int64)
-    ij -= ij.min(axis=0)
+    ij -= coord_min(ij)
     ny = int(ij[:, 1].max()) + 1
     key = ij[:, 0] * ny + ij[:, 1]
     size = int(ij[:, 0].max() + 1) * ny
@@ -276,8 +287,8 @@ def local_canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray
     if not sel.any():
         return out
     ij_all = np.floor(local[:, :2]).astype(np.int64)
-    lo = ij_all[sel].min(axis=0) - DENSITY_HALF_WIDTH_M
-    hi = ij_all[sel].max(axis=0) + DENSITY_HALF_WIDTH_M
+    lo = coord_min(ij_all[sel]) - DENSITY_HALF_WIDTH_M
+    hi = coord_max(ij_all[sel]) + DENSITY_HALF_WIDTH_M
     shape = tuple((hi - lo + 1).tolist())
     if shape[0] * shape[1] > 8 * n + 4_000_000:      # a sparse extent: the whole cloud's mean
         out[:] = canopy_density(cloud, local, crown)
@@ -308,7 +319,7 @@ def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> f
     xy = local[sel, :2]
     if len(xy) == 0:
         return 1.0
-    ij = np.floor(xy - xy.min(axis=0)).astype(np.int64)
+    ij = np.floor(xy - coord_min(xy)).astype(np.int64)
     ny = int(ij[:, 1].max()) + 1
     key = ij[:, 0] * ny + ij[:, 1]
     size = int(ij[:, 0].max() + 1) * ny
@@ -329,7 +340,7 @@ def _voxels_near(graph: VoxelGraph, xyz: np.ndarray, limit: float, pitch: float)
     ij = graph.ijk[:, :2]
     if graph.n == 0 or len(xyz) == 0:
         return np.arange(graph.n)
-    shape = ij.max(axis=0) + 1
+    shape = coord_max(ij) + 1
     if shape[0] * shape[1] > 8 * graph.n + 4_000_000:
         return np.arange(graph.n)
     r = int(np.ceil(limit / pitch)) + 1          # columns within limit (+1: a point anywhere in its cell)
@@ -417,8 +428,8 @@ def canopy_cover_at_tops(local: np.ndarray, height: np.ndarray, crown: np.ndarra
     if len(top_xy) == 0 or not crown.any():
         return out
     ij_all = np.floor(local[:, :2]).astype(np.int64)
-    lo = ij_all.min(axis=0)
-    shape = tuple((ij_all.max(axis=0) - lo + 1).tolist())
+    lo = coord_min(ij_all)
+    shape = tuple((coord_max(ij_all) - lo + 1).tolist())
     if shape[0] * shape[1] > 8 * len(local) + 4_000_000:     # a sparse extent: taken as closed
         return out
     observed = np.zeros(shape, dtype=bool)
