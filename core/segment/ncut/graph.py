@@ -294,8 +294,8 @@ def local_canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray
         out[:] = canopy_density(cloud, local, crown)
         return out
     ij = ij_all[sel] - lo
-    counts = np.zeros(shape)
-    np.add.at(counts, (ij[:, 0], ij[:, 1]), 1.0)
+    counts = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
+    counts = counts.astype(np.float64)
     occupied = (counts > 0).astype(np.float64)
     size = 2 * DENSITY_HALF_WIDTH_M + 1
     # box sums as exact integers (uniform_filter of 0/1 and counts, times the box area)

@@ -256,7 +256,10 @@ class NormalizedCut:
         cover, steep = self._openness(local, height, crown, local_tops, top_id, top_height, graph, top_voxel)
         # the minimum size of a tree, in points, at the scan's density around its top
         voxel_rho = np.zeros(graph.n)
-        np.maximum.at(voxel_rho, graph.point_voxel, rho[crown])
+        is_top = np.zeros(graph.n, dtype=bool)
+        is_top[top_voxel] = True
+        at_top = np.flatnonzero(crown)[is_top[graph.point_voxel]]      # the points of the top voxels
+        np.maximum.at(voxel_rho, graph.point_voxel[is_top[graph.point_voxel]], rho[at_top])
         min_points = np.minimum(float(self.min_tree_points), MIN_TREE_AREA_M2 * voxel_rho[top_voxel])
         report(progress, 0.2, "normalised cuts")
         vlabel = cut_graph(graph, top_voxel, top_id, top_height, self,
