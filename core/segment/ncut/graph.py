@@ -347,11 +347,11 @@ def _voxels_near(graph: VoxelGraph, xyz: np.ndarray, limit: float, pitch: float)
     col = np.floor(xyz[:, :2] / pitch).astype(np.int64) - graph.ij0
     keep = ((col >= -r) & (col < shape + r)).all(axis=1)
     col, low = col[keep] + 2 * r, xyz[keep, 2] - limit
-    floor = np.full((int(shape[0]) + 4 * r, int(shape[1]) + 4 * r), np.inf)
+    lowest = np.full((int(shape[0]) + 4 * r, int(shape[1]) + 4 * r), np.inf)   # per column, padded
     for dx in range(-r, r + 1):
         for dy in range(-r, r + 1):
-            np.minimum.at(floor, (col[:, 0] + dx, col[:, 1] + dy), low)
-    return np.flatnonzero(graph.xyz[:, 2] >= floor[ij[:, 0] + 2 * r, ij[:, 1] + 2 * r])
+            np.minimum.at(lowest, (col[:, 0] + dx, col[:, 1] + dy), low)
+    return np.flatnonzero(graph.xyz[:, 2] >= lowest[ij[:, 0] + 2 * r, ij[:, 1] + 2 * r])
 
 
 def top_voxels(graph: VoxelGraph, tops, params: "NormalizedCut"):

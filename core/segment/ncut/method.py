@@ -258,8 +258,8 @@ class NormalizedCut:
         voxel_rho = np.zeros(graph.n)
         is_top = np.zeros(graph.n, dtype=bool)
         is_top[top_voxel] = True
-        at_top = np.flatnonzero(crown)[is_top[graph.point_voxel]]      # the points of the top voxels
-        np.maximum.at(voxel_rho, graph.point_voxel[is_top[graph.point_voxel]], rho[at_top])
+        on_top = is_top[graph.point_voxel]             # the crown points of the top voxels
+        np.maximum.at(voxel_rho, graph.point_voxel[on_top], rho[np.flatnonzero(crown)[on_top]])
         min_points = np.minimum(float(self.min_tree_points), MIN_TREE_AREA_M2 * voxel_rho[top_voxel])
         report(progress, 0.2, "normalised cuts")
         vlabel = cut_graph(graph, top_voxel, top_id, top_height, self,
