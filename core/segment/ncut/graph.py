@@ -226,6 +226,12 @@ def coord_max(a: np.ndarray) -> np.ndarray:
     return np.array([a[:, k].max() for k in range(a.shape[1])])
 
 
+def grid_fits(shape, n: int) -> bool:
+    """Whether a 2-D grid of ``shape`` cells is small enough beside ``n`` points to be allocated
+    (at most 8 cells per point plus 4 M); a sparser extent is handled without one."""
+    return int(shape[0]) * int(shape[1]) <= 8 * n + 4_000_000
+
+
 def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     """Indices of the highest point of every ``cell_m`` column (ties: the lowest index).
 
@@ -290,7 +296,7 @@ def local_canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray
     lo = coord_min(ij_all[sel]) - DENSITY_HALF_WIDTH_M
     hi = coord_max(ij_all[sel]) + DENSITY_HALF_WIDTH_M
     shape = tuple((hi - lo + 1).tolist())
-    if shape[0] * shape[1] > 8 * n + 4_000_000:      # a sparse extent: the whole cloud's mean
+    if not grid_fits(shape, n):      # a sparse extent: the whole cloud's mean
         out[:] = canopy_density(cloud, local, crown)
         return out
     ij = ij_all[sel] - lo
@@ -341,7 +347,7 @@ def _voxels_near(graph: VoxelGraph, xyz: np.ndarray, limit: float, pitch: float)
     if graph.n == 0 or len(xyz) == 0:
         return np.arange(graph.n)
     shape = coord_max(ij) + 1
-    if shape[0] * shape[1] > 8 * graph.n + 4_000_000:
+    if not grid_fits(shape, graph.n):
         return np.arange(graph.n)
     r = int(np.ceil(limit / pitch)) + 1          # columns within limit (+1: a point anywhere in its cell)
     col = np.floor(xyz[:, :2] / pitch).astype(np.int64) - graph.ij0
@@ -430,7 +436,7 @@ def canopy_cover_at_tops(local: np.ndarray, height: np.ndarray, crown: np.ndarra
     ij_all = np.floor(local[:, :2]).astype(np.int64)
     lo = coord_min(ij_all)
     shape = tuple((coord_max(ij_all) - lo + 1).tolist())
-    if shape[0] * shape[1] > 8 * len(local) + 4_000_000:     # a sparse extent: taken as closed
+    if not grid_fits(shape, len(local)):     # a sparse extent: taken as closed
         return out
     observed = np.zeros(shape, dtype=bool)
     observed[ij_all[:, 0] - lo[0], ij_all[:, 1] - lo[1]] = True

@@ -16,8 +16,8 @@ from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_off_centre, merge_small, within_crown_reach
 from .cut import cut_graph
-from .graph import (canopy_cover_at_tops, column_maxima, local_canopy_density, top_voxels, topless_crowns,
-                    voxel_graph)
+from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
+                    top_voxels, topless_crowns, voxel_graph)
 
 
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
@@ -292,7 +292,7 @@ class NormalizedCut:
         steep_id = np.zeros(int(top_id.max()) + 1, dtype=bool)
         steep_id[top_id] = steep
         xy = local[:, :2]
-        bounds = (xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max())
+        bounds = (*coord_min(xy), *coord_max(xy))
         labels = merge_off_centre(xy, height, labels, steep_id, bounds)
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
