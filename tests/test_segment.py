@@ -123,6 +123,57 @@ def test_classified_roofs_and_wires_are_no_trees(method):
     assert np.any(unclassified[len(cloud):] > 0)
 
 
+
+def _with_returns(cloud, truth, seed=2):
+    """``cloud`` with ``number_of_returns``: most crown pulses go on through the crown (2-4 returns),
+    ground and a tenth of the crown's pulses have one."""
+    rng = np.random.default_rng(seed)
+    n = np.where((truth > 0) & (rng.uniform(size=len(truth)) < 0.9), rng.integers(2, 5, len(truth)), 1)
+    return PointCloud(cloud.xyz, attrs={**cloud.attrs, "number_of_returns": n.astype(np.uint8)},
+                      source=cloud.source)
+
+
+def _with_deck(cloud, returns, seed=3):
+    """``cloud`` (with ``number_of_returns``) and an unclassified deck beside the crowns: 4 m x 10 m,
+    rising 8 -> 9.5 m, 5 cm of noise, its points of pulses of ``returns`` returns."""
+    rng = np.random.default_rng(seed)
+    k = 40 * 20
+    deck = np.column_stack([rng.uniform(22, 26, k), rng.uniform(14, 24, k), np.zeros(k)])
+    deck[:, 2] = 8.0 + 0.15 * (deck[:, 1] - 14) + rng.normal(0, 0.05, k)
+    xyz = np.vstack([cloud.xyz, deck + [ORIGIN[0], ORIGIN[1], GROUND_Z]])
+    attrs = {"height": np.r_[cloud.attrs["height"], deck[:, 2]],
+             "classification": np.r_[cloud.attrs["classification"], np.ones(k, np.uint8)],
+             "intensity": np.r_[cloud.attrs["intensity"], np.full(k, 200, np.uint16)],
+             "number_of_returns": np.r_[cloud.attrs["number_of_returns"], np.full(k, returns, np.uint8)]}
+    return PointCloud(xyz, attrs=attrs, source="test_tile.laz")
+
+
+@pytest.mark.parametrize("method", [NormalizedCut(), ChmRegionGrowing()])
+def test_an_unclassified_deck_of_single_returns_is_no_tree(method):
+    from sylva.core.segment.surfaces import hard_surfaces
+
+    cloud, truth = cones(THREE, (28, 28))
+    cloud = _with_returns(cloud, truth)
+    alone = segment_trees(cloud, method)
+    assert len(np.unique(alone[alone > 0])) == 3                # the three cones
+    deck = segment_trees(_with_deck(cloud, 1), method)
+    assert np.all(deck[len(cloud):] == 0)                    # one return on a plane: no tree
+    decked = _with_deck(cloud, 1)
+    raw = np.asarray(method.segment(decked), dtype=np.int64)       # before the rule
+    found = hard_surfaces(decked, raw)
+    on_deck = np.unique(raw[len(cloud):][raw[len(cloud):] > 0])
+    assert len(on_deck) and set(found) == set(on_deck) and not np.isin(found, raw[:len(cloud)]).any()
+    np.testing.assert_array_equal(hard_surfaces(decked, raw * 10 ** 9), found * 10 ** 9)  # sparse IDs
+    np.testing.assert_array_equal(deck[:len(cloud)], alone)  # and the trees are the same
+    # the same deck hit by pulses that go on (vegetation's signature), or of unknown returns: a "tree"
+    assert np.any(segment_trees(_with_deck(cloud, 2), method)[len(cloud):] > 0)
+    assert np.any(segment_trees(_with_deck(cloud, 0), method)[len(cloud):] > 0)
+    # a survey of single returns only: a crown is no plane, the trees stay
+    single = PointCloud(cloud.xyz, attrs={**cloud.attrs, "number_of_returns": np.ones(len(cloud), np.uint8)},
+                        source=cloud.source)
+    assert len(hard_surfaces(single, alone)) == 0
+    np.testing.assert_array_equal(segment_trees(single, method), alone)
+
 def test_touching_crowns_are_separated_along_the_crease():
     cloud, truth = cones(TOUCHING, (24, 20), density=30.0)
     labels = segment_trees(cloud, NormalizedCut(), tops=tops_of(TOUCHING))
@@ -553,6 +604,23 @@ def test_mixed_conifer_agrees_with_lidr_when_available():
     _, counts = np.unique(labels[labels > 0], return_counts=True)
     assert counts.min() >= method.min_tree_points
 
+
+
+def test_autzen_footbridge_is_no_string_of_trees_when_available():
+    """autzen_trim.laz (unclassified suburb, RGB, feet): a footbridge ramp rising 8 -> 10 m over
+    55 m was 37 "trees" of single returns; its single-return planar pieces are now none."""
+    data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "als" / "autzen_trim.laz"
+    if not data.exists():
+        pytest.skip(f"{data} not available")
+    from sylva.core.io import read_cloud
+    from sylva.core.segment.tile import segment_tile
+
+    tile = segment_tile(read_cloud(str(data)))
+    x, y = tile.tops.xyz[:, 0], tile.tops.xyz[:, 1]
+    # the ramp's axis in the file's coordinates (feet), measured on its single-return points
+    on_ramp = (np.abs(x - (0.36929 * y + 322831.807)) < 10) & (y > 849265) & (y < 849446)
+    assert on_ramp.sum() <= 8          # 6 pieces that hold points under the deck remain
+    assert len(tile.tops) > 250        # the park's trees stay
 
 def test_start_boundary_ncut_and_saddle_match_eq1():
     """The vectorised per-pair NCut (Hu et al. Eq. 1) and saddle height equal a direct count."""

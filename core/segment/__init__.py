@@ -34,6 +34,8 @@ Rules every method follows (shared helpers in :mod:`.base`):
 * Isolated points (noise) stay 0: a crown point must be connected to a tree top
   through the method's neighbourhood structure (or stand in a labelled crown's
   column, as above), and nothing of a tree is higher than its top.
+* A segment of single returns on a plane (an unclassified roof, bridge deck or
+  truck: :func:`.surfaces.hard_surfaces`) is not a tree: its points are 0.
 """
 from __future__ import annotations
 
@@ -45,6 +47,7 @@ from ..progress import CancelCheck, Progress, report
 from .base import LocalTops, validate_cloud
 from .chm import ChmRegionGrowing
 from .ncut import NormalizedCut
+from .surfaces import hard_surfaces
 
 __all__ = ["segment_trees", "NormalizedCut", "ChmRegionGrowing", "LocalTops", "NOT_TREE_CLASSES"]
 
@@ -84,6 +87,9 @@ def segment_trees(cloud: PointCloud, method=NormalizedCut(), tops=None,
         labels[~other] = _segment(method, cloud.subset(~other), tops, progress, cancelled)
     else:
         labels = _segment(method, cloud, tops, progress, cancelled)
+    hard = hard_surfaces(cloud, labels)
+    if len(hard):
+        labels[np.isin(labels, hard)] = 0
     report(progress, 1.0, "tree segmentation done")
     return labels
 
