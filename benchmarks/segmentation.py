@@ -538,8 +538,8 @@ def throughput(sizes):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="throughput at 1 M points only")
-    parser.add_argument("--kinds", default="conifer,broadleaf,mixed",
-                        help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed)")
+    parser.add_argument("--kinds", default="conifer,broadleaf,mixed,parkland",
+                        help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed, parkland)")
     parser.add_argument("--stands", default="open,medium,dense",
                         help="comma-separated stands of the accuracy table (open, medium, dense)")
     parser.add_argument("--densities", default="2,5,20,50",

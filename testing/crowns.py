@@ -48,11 +48,24 @@ Forestry sources (the generator is written from them, not from the segmenter):
   radius, 45-65 % of its height, with a round clumped crown partly under the
   dominant's (understorey trees of a two-storey stand).
 
+* **Open-grown crowns.** A tree grown without neighbours (park, pasture,
+  street, field edge) keeps its lower branches and spreads: at a given size
+  its crown is much wider than a forest-grown tree's (Hasenauer 1997,
+  "Dimensional relationships of open-grown trees in Austria", For. Ecol.
+  Manage. 96:197-206, the open-grown crown widths behind the crown
+  competition factor).  The suburban park of ``autzen_trim.laz`` has
+  isolated round crowns of 4.6-7 m radius on trees 10-18 m high (about 2-3.5 x
+  the forest allometry's radius at their height).  ``"parkland"`` crowns are
+  the broadleaf crowns above with :data:`OPEN_GROWN_SCALE` x the radius.
+
 Stands: ``"broadleaf"`` (all broadleaf clumped crowns, 40 % round, 30 %
 flat, 30 % columnar), ``"mixed"`` (40 % conifers of ``synth``'s cones, 60 %
 broadleaves as above, 15 % of the dominant trees with a suppressed
 neighbour), each ``"open"``, ``"medium"`` or ``"dense"`` as ``synth``'s presets
-(120 / 250 / 400 stems per ha, crowns overlapping 0 / 0.5 / 1).
+(120 / 250 / 400 stems per ha, crowns overlapping 0 / 0.5 / 1);
+``"parkland"`` (open-grown broadleaves, the same three structures with
+:data:`OPEN_GROWN_SCALE`² fewer stems, so that the canopy covers as much
+ground: 19 / 40 / 64 stems per ha, lone trees to touching groups).
 """
 from __future__ import annotations
 
@@ -68,7 +81,7 @@ from ..core.errors import InputError
 
 __all__ = ["KINDS", "STRUCTURES", "FORMS", "suite_stand", "suite_preset", "crown_forms"]
 
-KINDS = ("broadleaf", "mixed")
+KINDS = ("broadleaf", "mixed", "parkland")
 STRUCTURES = ("open", "medium", "dense")
 FORMS = ("round", "flat", "cylinder")
 
@@ -85,6 +98,10 @@ _LEADERS = ((1, 0.6), (2, 0.3), (3, 0.1))
 _SHELL_SHARE = 0.8
 _COVERAGE = 0.8
 _GAP_HALF_ANGLE = math.radians(35.0)
+
+#: Crown radius of an open-grown broadleaf / a forest-grown one of the same height (2.5: a crown
+#: 0.9 x as wide as the tree is high at 15 m, 0.8 x at 30 m, as autzen_trim.laz's park trees).
+OPEN_GROWN_SCALE = 2.5
 
 
 def _profile(u: np.ndarray, form: str) -> np.ndarray:
@@ -164,13 +181,17 @@ def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0
     if structure not in synth._PRESETS:
         raise InputError(f"unknown stand structure {structure!r}; choose one of {', '.join(STRUCTURES)}")
     stems, overlap = synth._PRESETS[structure]
+    scale = 1.0
     if kind == "broadleaf":
         species, weights, suppressed = ("broadleaf",), (1.0,), 0.0
+    elif kind == "parkland":
+        species, weights, suppressed, scale = ("broadleaf",), (1.0,), 0.0, OPEN_GROWN_SCALE
+        stems /= scale ** 2
     else:
         species, weights, suppressed = ("conifer", "broadleaf"), (0.4, 0.6), 0.15
     spec = synth.StandSpec(width_m=width_m, depth_m=width_m, stems_per_ha=stems, species=species,
                            species_weights=weights, height_m=(8.0, 30.0), crown_overlap=overlap,
-                           seed=seed)
+                           seed=seed, crown_scale=scale)
     base = synth.make_stand(spec)
     rng = np.random.default_rng(10_000 + seed)
     tan_slope = math.tan(math.radians(spec.slope_deg))

@@ -113,6 +113,8 @@ class StandSpec:
     the direction of steepest descent, clockwise from grid north;
     ``undulation_m`` the amplitude of a smooth seeded relief on top of the slope.
     ``ground_z0`` is the terrain height at the centre of the stand.
+    ``crown_scale`` multiplies every allometric crown radius (before the
+    competition rule): 1 for forest-grown trees, more for open-grown ones.
     """
 
     width_m: float = 100.0
@@ -129,6 +131,7 @@ class StandSpec:
     crs: str = "EPSG:32632"
     ground_z0: float = 250.0
     seed: int = 0
+    crown_scale: float = 1.0
 
     def __post_init__(self):
         if not (self.width_m > 0 and self.depth_m > 0):
@@ -155,6 +158,8 @@ class StandSpec:
             raise InputError(f"slope_deg must be in 0..60 degrees, got {self.slope_deg}")
         if self.undulation_m < 0:
             raise InputError(f"undulation_m must be >= 0, got {self.undulation_m}")
+        if not 0.0 < self.crown_scale < float("inf"):
+            raise InputError(f"crown_scale must be positive and finite, got {self.crown_scale}")
         _projected_crs(self.crs)
 
 
@@ -354,7 +359,7 @@ def make_stand(spec: StandSpec = StandSpec()) -> Stand:
     cr_hi = np.array([a["cr"][1] for a in al])
     na = np.array([a["naslund_a"] for a in al])
     nb = _ALLOMETRY["conifer"]["naslund_b"]
-    radius = (r0 + r1 * height) * rng.lognormal(0.0, 0.12, size=n)
+    radius = (r0 + r1 * height) * spec.crown_scale * rng.lognormal(0.0, 0.12, size=n)
     crown_ratio = rng.uniform(cr_lo, cr_hi)
     cbh = np.maximum(height * (1.0 - crown_ratio), 1.5)
     dbh_m = 0.01 * _naslund_dbh_cm(height, na, nb) * rng.lognormal(0.0, 0.10, size=n)

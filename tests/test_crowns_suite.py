@@ -45,3 +45,22 @@ def test_bad_kind_is_one_clear_error():
         crowns.suite_stand("palm", "open")
     with pytest.raises(InputError, match="structure"):
         crowns.suite_stand("broadleaf", "sparse")
+
+
+def test_parkland_crowns_are_open_grown_and_cover_as_much_ground():
+    """Open-grown broadleaves: OPEN_GROWN_SCALE x the forest crown radius, OPEN_GROWN_SCALE² fewer
+    stems, so the canopy covers about as much ground as the broadleaf stand of the same structure."""
+    def radius_share_and_cover(kind):
+        stand = crowns.suite_stand(kind, "open", seed=1)
+        r = np.array([t.crown_radius_m for t in stand.trees])
+        h = np.array([t.height for t in stand.trees])
+        return np.median(r / h), len(stand.trees), np.pi * (r ** 2).sum() / 1e4
+
+    park, n_park, cover_park = radius_share_and_cover("parkland")
+    forest, n_forest, cover_forest = radius_share_and_cover("broadleaf")
+    assert park > 0.3 and park > 2.0 * forest
+    assert n_park < n_forest / 4
+    assert 0.6 < cover_park / cover_forest < 1.6
+    assert set(crowns.crown_forms(crowns.suite_stand("parkland", "open", seed=1)).values()) <= set(crowns.FORMS)
+    with pytest.raises(InputError, match="crown_scale"):
+        synth.StandSpec(crown_scale=0.0)
