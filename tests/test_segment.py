@@ -396,6 +396,101 @@ def test_merging_off_centre_crowns_gives_a_truer_count_and_a_better_f1(monkeypat
         assert on["f1"] > off["f1"], structure
 
 
+
+def _surface(shapes, step=0.35, seed=4):
+    """Canopy points on a 0.35 m grid (one per column, as a first-return surface) of crowns given as
+    functions z(x, y) (NaN outside), the highest where they overlap; (xy, height)."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(0.0, 60.0, step)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    z = np.stack([f(x, y) for f in shapes])
+    z = np.where(np.isnan(z), -np.inf, z).max(axis=0)
+    have = np.isfinite(z)
+    return np.column_stack([x[have], y[have]]), z[have] + rng.normal(0, 0.05, have.sum())
+
+
+def _dome(cx, cy, radius, height, bumps=0.4):
+    """An open-grown crown: a dome of ``radius`` falling 6 m to its rim, rough with leaf clumps."""
+    def z(x, y):
+        r = np.hypot(x - cx, y - cy)
+        rough = bumps * np.sin(2.1 * (x - cx)) * np.cos(1.7 * (y - cy))
+        return np.where(r <= radius, height - 6.0 * (r / radius) ** 2 + rough, np.nan)
+    return z
+
+
+def _cone(cx, cy, radius, height):
+    def z(x, y):
+        r = np.hypot(x - cx, y - cy)
+        return np.where(r <= radius, height - 0.6 * height * r / radius, np.nan)
+    return z
+
+
+def test_a_round_open_grown_crown_is_one_tree_and_a_group_of_trees_is_not():
+    from sylva.core.segment.ncut import islands
+    from sylva.core.segment.ncut.islands import merge_round_islands
+
+    bounds = (0.0, 0.0, 59.65, 59.65)
+    # a park tree: 14 m high, crown radius 7 m (0.5 x its height), cut into four pieces
+    xy, h = _surface([_dome(20.0, 20.0, 7.0, 14.0)])
+    pieces = 1 + (xy[:, 0] > 20.0) + 2 * (xy[:, 1] > 20.0)
+    assert len(np.unique(merge_round_islands(xy, h, pieces, bounds, 2.0))) == 1
+    # four conifers of 14 m touching in a square (a round, convex island as wide): four domes
+    group = [_cone(20.0 + dx, 20.0 + dy, 3.6, 14.0) for dx in (-3.0, 3.0) for dy in (-3.0, 3.0)]
+    xy, h = _surface(group)
+    own = np.argmax(np.stack([np.nan_to_num(f(*xy.T), nan=-1.0) for f in group]), axis=0) + 1
+    np.testing.assert_array_equal(merge_round_islands(xy, h, own, bounds, 2.0), own)
+    # it is the dome test that tells them apart
+    old = islands.ISLAND_DOME_RMS
+    try:
+        islands.ISLAND_DOME_RMS = 1.0
+        assert len(np.unique(merge_round_islands(xy, h, own, bounds, 2.0))) == 1
+    finally:
+        islands.ISLAND_DOME_RMS = old
+    # two park trees side by side: one island, elongated; a lone forest tree's pieces: too narrow
+    xy, h = _surface([_dome(20.0, 20.0, 7.0, 14.0), _dome(32.0, 20.0, 7.0, 14.0)])
+    two = 1 + (xy[:, 0] > 26.0) + 2 * (xy[:, 1] > 20.0)
+    np.testing.assert_array_equal(merge_round_islands(xy, h, two, bounds, 2.0), two)
+    xy, h = _surface([_dome(20.0, 20.0, 3.0, 20.0)])
+    split = 1 + (xy[:, 0] > 20.0)
+    np.testing.assert_array_equal(merge_round_islands(xy, h, split, bounds, 2.0), split)
+    # a spike of noise over the canopy does not make an island look tall
+    surface = np.full((5, 5), np.nan)
+    surface[1:4, 1:4] = [[10.0, 11.0, 10.0], [11.0, 95.0, 11.5], [10.0, 11.0, 10.0]]
+    island = np.where(np.isfinite(surface), 1, 0)
+    assert list(islands._island_peaks(island, surface, 1)) == [0.0, 11.0]
+    # a row of fused crowns (a smooth ridge 24 m x 5 m, 12 m high, one quadric): too elongated
+    def ridge(x, y):
+        u, v = (x - 30.0) / 12.0, (y - 20.0) / 2.5
+        return np.where(u * u + v * v <= 1.0, 12.0 - 2.0 * (u * u + v * v), np.nan)
+    xy, h = _surface([ridge])
+    row = 1 + np.digitize(xy[:, 0], [26.0, 34.0])
+    np.testing.assert_array_equal(merge_round_islands(xy, h, row, bounds, 2.0), row)
+
+
+def test_merging_open_grown_islands_gives_a_truer_count_and_a_better_f1(monkeypatch):
+    """On open-grown broadleaves the benchmarks do not use (parkland, seed 2, 60 m), merging the
+    pieces of a round canopy island gives fewer trees and a better detection F1; on open forest
+    broadleaves (no crown that wide) it changes nothing."""
+    from sylva.core.segment.ncut import method
+    from sylva.testing import crowns, synth
+    from sylva.core.terrain import normalize
+
+    for kind, structure, density in (("parkland", "open", 5), ("parkland", "open", 20),
+                                     ("broadleaf", "open", 20)):
+        stand, spec = crowns.suite_preset(kind, structure, density, seed=2, width_m=60.0)
+        scan = synth.simulate_scan(stand, spec)
+        cloud = normalize(scan.cloud)
+        on = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                                 scan.truth_tree, stand.trees)
+        with monkeypatch.context() as m:
+            m.setattr(method, "merge_round_islands", lambda xy, height, labels, *rest: labels)
+            off = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                                      scan.truth_tree, stand.trees)
+        if kind == "parkland":
+            assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"], structure
+        else:
+            assert on["n_detected"] == off["n_detected"] and on["f1"] == off["f1"]
+
 def test_leaders_the_graph_does_not_join_are_one_crown(monkeypatch):
     """On open broadleaves the benchmarks do not use (seed 2, 60 m, 5 points/m2), merging level
     rounded tops whose regions do not touch gives fewer trees and a better detection F1."""

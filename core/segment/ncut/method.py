@@ -18,6 +18,7 @@ from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_off_centre, merge_sm
 from .cut import cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
+from .islands import merge_round_islands
 
 
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
@@ -294,6 +295,8 @@ class NormalizedCut:
         xy = local[:, :2]
         bounds = (*coord_min(xy), *coord_max(xy))
         labels = merge_off_centre(xy, height, labels, steep_id, bounds)
+        # an open-grown crown: a round canopy island too wide for a forest crown
+        labels = merge_round_islands(xy, height, labels, bounds, self.min_height_m)
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
