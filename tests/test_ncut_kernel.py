@@ -276,7 +276,7 @@ def test_tops_of_is_the_highest_point_of_every_tree():
     xy = np.round(rng.uniform(0, 20, size=(n, 2)), 0)        # many equal x and y
     h = np.round(rng.uniform(0, 5, size=n), 0)               # many equal heights
     labels = rng.choice(np.array([0, 1, 2, 5, 9, 40, 41, 300]), size=n).astype(np.int32)
-    ids, txy, th = NC._tops_of(xy, h, labels)
+    ids, txy, th = NC.label_tops(xy, h, labels)
     assert ids.tolist() == [1, 2, 5, 9, 40, 41, 300]
     duplicated = 0
     for k, label in enumerate(ids):
@@ -288,7 +288,7 @@ def test_tops_of_is_the_highest_point_of_every_tree():
         duplicated += len(same) > 1          # the top's point is there twice or more: the first is taken
     assert duplicated > 0
     none = np.zeros(n, dtype=np.int32)
-    assert all(len(v) == 0 for v in NC._tops_of(xy, h, none))
+    assert all(len(v) == 0 for v in NC.label_tops(xy, h, none))
 
 
 # --- the whole method --------------------------------------------------------------------------

@@ -375,26 +375,45 @@ def test_a_crown_piece_whose_apex_is_off_centre_joins_the_tree_it_leans_on():
     assert np.array_equal(merge_off_centre(mirrored, height, labels, none, wide), labels)
 
 
-def test_merging_off_centre_crowns_gives_a_truer_count_and_a_better_f1(monkeypatch):
-    """On open and dense broadleaves the benchmarks do not use (seed 2, 60 m), merging the pieces of
-    a crown whose apex is off-centre gives fewer trees (the pieces) and a better detection F1."""
-    from sylva.core.segment.ncut import method
+def _with_and_without(monkeypatch, module, name, value, kind, structure, density):
+    """Detection metrics of NormalizedCut on a stand the benchmarks do not use (``kind`` conifer:
+    testing/synth's preset, seed 3; else the extended suite, seed 2, 60 m), as it is and with
+    ``module.name`` set to ``value`` (a rule turned off)."""
     from sylva.testing import crowns, synth
     from sylva.core.terrain import normalize
 
-    for kind, structure, density in (("broadleaf", "open", 20), ("broadleaf", "dense", 20)):
+    if kind == "conifer":
+        stand_spec, spec = synth.preset(structure, pulse_density=density, seed=3)
+        stand = synth.make_stand(stand_spec)
+    else:
         stand, spec = crowns.suite_preset(kind, structure, density, seed=2, width_m=60.0)
-        scan = synth.simulate_scan(stand, spec)
-        cloud = normalize(scan.cloud)
-        on = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                 scan.truth_tree, stand.trees)
-        with monkeypatch.context() as m:
-            m.setattr(method, "merge_off_centre", lambda xy, height, labels, *rest: labels)
-            off = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                      scan.truth_tree, stand.trees)
+    scan = synth.simulate_scan(stand, spec)
+    cloud = normalize(scan.cloud)
+
+    def metrics():
+        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                                   scan.truth_tree, stand.trees)
+
+    on = metrics()
+    with monkeypatch.context() as m:
+        m.setattr(module, name, value)
+        off = metrics()
+    return on, off
+
+
+def _no_op(xy, height, labels, *rest):
+    return labels
+
+
+def test_merging_off_centre_crowns_gives_a_truer_count_and_a_better_f1(monkeypatch):
+    """On open and dense broadleaves, merging the pieces of a crown whose apex is off-centre gives
+    fewer trees (the pieces) and a better detection F1."""
+    from sylva.core.segment.ncut import method
+
+    for structure in ("open", "dense"):
+        on, off = _with_and_without(monkeypatch, method, "merge_off_centre", _no_op, "broadleaf", structure, 20)
         assert on["n_detected"] < off["n_detected"], structure
         assert on["f1"] > off["f1"], structure
-
 
 
 def _surface(shapes, step=0.35, seed=4):
@@ -468,47 +487,25 @@ def test_a_round_open_grown_crown_is_one_tree_and_a_group_of_trees_is_not():
 
 
 def test_merging_open_grown_islands_gives_a_truer_count_and_a_better_f1(monkeypatch):
-    """On open-grown broadleaves the benchmarks do not use (parkland, seed 2, 60 m), merging the
-    pieces of a round canopy island gives fewer trees and a better detection F1; on open forest
-    broadleaves (no crown that wide) it changes nothing."""
+    """On open-grown broadleaves (parkland), merging the pieces of a round canopy island gives fewer
+    trees and a better detection F1; on open forest broadleaves (no crown that wide) it changes
+    nothing."""
     from sylva.core.segment.ncut import method
-    from sylva.testing import crowns, synth
-    from sylva.core.terrain import normalize
 
-    for kind, structure, density in (("parkland", "open", 5), ("parkland", "open", 20),
-                                     ("broadleaf", "open", 20)):
-        stand, spec = crowns.suite_preset(kind, structure, density, seed=2, width_m=60.0)
-        scan = synth.simulate_scan(stand, spec)
-        cloud = normalize(scan.cloud)
-        on = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                 scan.truth_tree, stand.trees)
-        with monkeypatch.context() as m:
-            m.setattr(method, "merge_round_islands", lambda xy, height, labels, *rest: labels)
-            off = _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                      scan.truth_tree, stand.trees)
-        if kind == "parkland":
-            assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"], structure
-        else:
-            assert on["n_detected"] == off["n_detected"] and on["f1"] == off["f1"]
+    for density in (5, 20):
+        on, off = _with_and_without(monkeypatch, method, "merge_round_islands", _no_op, "parkland", "open", density)
+        assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"], density
+    on, off = _with_and_without(monkeypatch, method, "merge_round_islands", _no_op, "broadleaf", "open", 20)
+    assert on["n_detected"] == off["n_detected"] and on["f1"] == off["f1"]
+
 
 def test_leaders_the_graph_does_not_join_are_one_crown(monkeypatch):
     """On open broadleaves the benchmarks do not use (seed 2, 60 m, 5 points/m2), merging level
     rounded tops whose regions do not touch gives fewer trees and a better detection F1."""
     from sylva.core.segment.ncut import cut
-    from sylva.testing import crowns, synth
-    from sylva.core.terrain import normalize
 
-    stand, spec = crowns.suite_preset("broadleaf", "open", 5, seed=2, width_m=60.0)
-    scan = synth.simulate_scan(stand, spec)
-    cloud = normalize(scan.cloud)
-
-    def scores():
-        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                   scan.truth_tree, stand.trees)
-
-    on = scores()
-    monkeypatch.setattr(cut, "CLOSED_COVER", 0.0)           # no canopy is open enough: the rule is off
-    off = scores()
+    # CLOSED_COVER 0: no canopy is open enough, the rule is off
+    on, off = _with_and_without(monkeypatch, cut, "CLOSED_COVER", 0.0, "broadleaf", "open", 5)
     assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"] + 0.03
 
 
@@ -534,21 +531,8 @@ def test_a_low_bump_under_a_conifer_crown_is_still_merged(monkeypatch):
     would be hidden): on open conifers the benchmarks do not use (seed 3) it is merged as before the
     crown-class cap, giving the true number of trees."""
     from sylva.core.segment.ncut import cut
-    from sylva.testing import synth
-    from sylva.core.terrain import normalize
 
-    stand_spec, scan_spec = synth.preset("open", pulse_density=20, seed=3)
-    stand = synth.make_stand(stand_spec)
-    scan = synth.simulate_scan(stand, scan_spec)
-    cloud = normalize(scan.cloud)
-
-    def scores():
-        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                   scan.truth_tree, stand.trees)
-
-    on = scores()
-    monkeypatch.setattr(cut, "UNDER_CROWN", 0.0)
-    off = scores()
+    on, off = _with_and_without(monkeypatch, cut, "UNDER_CROWN", 0.0, "conifer", "open", 20)
     assert on["n_detected"] == on["n_true"] < off["n_detected"] and on["f1"] > off["f1"]
 
 

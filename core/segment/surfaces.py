@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..groups import group_covariances
+
 #: Columns of this size give a segment's upper surface.
 SURFACE_CELL_M = 1.0
 
@@ -81,16 +83,7 @@ def hard_surfaces(cloud, labels: np.ndarray) -> np.ndarray:
     first[1:] = ((lab[order][1:] != lab[order][:-1]) | (ij[order][1:, 0] != ij[order][:-1, 0])
                  | (ij[order][1:, 1] != ij[order][:-1, 1]))
     top = order[first]
-    p, g = local[top], lab[top]
-    cells = np.bincount(g, minlength=k)
-    mean = np.stack([np.bincount(g, weights=p[:, j], minlength=k) for j in range(3)], axis=1)
-    mean /= np.maximum(cells, 1)[:, None]
-    d = p - mean[g]
-    cov = np.empty((k, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.bincount(g, weights=d[:, a] * d[:, b], minlength=k)
-    cov /= np.maximum(cells, 1)[:, None, None]
+    cov, _, cells = group_covariances(local[top], lab[top], k)
     rms = np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0.0))
     hard = (cells >= MIN_SURFACE_CELLS) & (rms < PLANE_RMS_M)
     return ids[hard]

@@ -14,6 +14,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from ...groups import group_covariances, group_means
 from ...progress import CancelCheck, Progress, check, report
 
 
@@ -64,14 +65,6 @@ def _group_argmin(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
 
 def _group_argmax(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     return _group_argmin(-values, labels, n)
-
-
-def _centroids(xyz: np.ndarray, labels: np.ndarray, n: int) -> Tuple[np.ndarray, np.ndarray]:
-    counts = np.bincount(labels, minlength=n).astype(np.float64)
-    c = np.empty((n, 3))
-    for j in range(3):
-        c[:, j] = np.bincount(labels, weights=xyz[:, j], minlength=n)
-    return c / np.maximum(counts, 1.0)[:, None], counts
 
 
 def energy(xyz: np.ndarray, labels: np.ndarray, centres: np.ndarray) -> float:
@@ -369,13 +362,8 @@ def bounding_cylinders(xyz: np.ndarray, labels: np.ndarray, n: int, normals: Opt
     """
     ok = labels >= 0
     p, lab = xyz[ok], labels[ok]
-    mean, counts = _centroids(p, lab, n)
+    cov, mean, counts = group_covariances(p, lab, n)
     d = p - mean[lab]
-    cov = np.empty((n, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            cov[:, i, j] = cov[:, j, i] = np.bincount(lab, weights=d[:, i] * d[:, j], minlength=n)
-    cov /= np.maximum(counts, 1.0)[:, None, None]
     _, vec = np.linalg.eigh(cov)
     axis = vec[:, :, 2]
     if normals is not None:
@@ -534,7 +522,7 @@ def segment(xyz: np.ndarray, k: int = 8, n_seeds: int = 0, delta_m: float = 0.03
         all_seeds = np.r_[all_seeds, act_idx[s_loc]]
         nc = len(all_seeds)
         # full-energy bookkeeping (Eq. 1 over all clusters) for this round
-        cent_all, _ = _centroids(xyz[labels >= 0], labels[labels >= 0], nc)
+        cent_all, _ = group_means(xyz[labels >= 0], labels[labels >= 0], nc)
         fixed_e = energy(xyz[~active & (labels >= 0)], labels[~active & (labels >= 0)], cent_all)
         energies.append([fixed_e + e for e in en])
         ok_new = lab >= 0

@@ -24,7 +24,7 @@ ATTACH_ROUNDS = 5
 TOP_TOLERANCE_M = 0.02
 
 
-def _tops_of(xy, height, labels):
+def label_tops(xy, height, labels):
     """(ids, top xy, top height) of every label > 0: its highest point (ties: lowest x, then y,
     then the first point; never the point order alone, which depends on the tiling).  One pass
     (:func:`_label_maxima`), not a sort of every labelled point."""
@@ -95,7 +95,7 @@ def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
     MixedConifer.laz against lidR's crowns, ``benchmarks/segmentation.py``)."""
     if not (labels > 0).any():
         return labels
-    tid, txy, th = _tops_of(xy, height, labels)
+    tid, txy, th = label_tops(xy, height, labels)
     pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
     pos[tid] = np.arange(len(tid))
     sel = np.flatnonzero(labels > 0)
@@ -119,7 +119,7 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
     small[0] = False
     if not small.any():
         return labels
-    tid, txy, th = _tops_of(xy, height, labels)
+    tid, txy, th = label_tops(xy, height, labels)
     big = ~small[tid]
     bad = np.flatnonzero(small[labels])
     return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
@@ -159,7 +159,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     it: both are left alone.  No per-tile statistic.  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
-    tid, txy, th = _tops_of(xy, height, labels)
+    tid, txy, th = label_tops(xy, height, labels)
     size = int(labels.max()) + 1
     top_h = np.zeros(size)
     top_h[tid] = th

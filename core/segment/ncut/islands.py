@@ -53,7 +53,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull
 
-from .cleanup import _tops_of
+from .cleanup import label_tops
 from .graph import column_maxima
 
 #: Cells of the canopy map the islands are found on (m).
@@ -89,7 +89,7 @@ def merge_round_islands(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, 
     canopy = np.flatnonzero((labels > 0) & (height >= min_height_m))
     if len(canopy) == 0:
         return labels
-    tid, txy, th = _tops_of(xy, height, labels)
+    tid, txy, th = label_tops(xy, height, labels)
     if len(tid) < 2:
         return labels
     cell = ISLAND_CELL_M
