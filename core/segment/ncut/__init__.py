@@ -192,7 +192,7 @@ Steps
    open mixed at 5 / 20 0.828 / 0.855 -> 0.846 / 0.867, medium mixed at 5 /
    20 0.813 / 0.855 -> 0.822 / 0.863, no stand loses more than 0.003; mean
    0.869 -> 0.875 at 5 points/m2 and more; MixedConifer 282 -> 275 trees,
-   IoU 0.584 -> 0.589); a round, one-domed canopy island too wide for a
+   IoU 0.584 -> 0.588); a round, one-domed canopy island too wide for a
    forest crown (0.3-0.65 x its height) is one open-grown tree, its pieces
    merged into its highest (:func:`.islands.merge_round_islands`; Sylva, not
    in Hu et al.: on the suite's open parkland stands, seed 0, 19 trees at

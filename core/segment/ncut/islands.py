@@ -46,6 +46,13 @@ not use).  The island is found on the canopy points of the
 segmented trees at :data:`ISLAND_CELL_M` (1 m cells, closed by one cell so
 that a sparse scan's empty cells inside a crown do not cut it), on the
 anchored local frame: any tiling draws the same cells.  Sylva, not in Hu et al.
+
+The test is on whole islands on purpose.  Growing a dome from the highest
+piece by adding touching trees while the union stays round and one dome
+(the same tests on a part of an island) joins touching park crowns too
+(parkland open 20 points/m2 F1 0.28 -> 0.46), but in a closed canopy it
+finds a dome-shaped group of forest trees as often: dense broadleaf and
+mixed stands at 5 and 20 points/m2 lose 0.03-0.19, conifer medium 5 0.03.
 """
 from __future__ import annotations
 
