@@ -466,6 +466,10 @@ def shipped_sample():
 
 # --------------------------------------------------------------------------- throughput
 
+#: The point attributes of the throughput input: those segment_trees reads from a LAS tile.
+_THROUGHPUT_ATTRS = ("height", "classification", "intensity", "return_number", "number_of_returns")
+
+
 def _make_input(n_points: int, path: str) -> None:
     """Child: a medium synthetic stand at 20 pulses/m2 with ~n_points points, saved as .npz."""
     from sylva.testing import synth
@@ -478,8 +482,8 @@ def _make_input(n_points: int, path: str) -> None:
     stand = synth.make_stand(stand_spec)
     scan = synth.simulate_scan(stand, scan_spec)
     cloud = normalize(scan.cloud)
-    np.savez(path, xyz=cloud.xyz, height=cloud.attrs["height"],
-             classification=cloud.attrs["classification"], intensity=cloud.attrs["intensity"],
+    # every attribute the chain reads from a real tile (the returns: the hard-surface test)
+    np.savez(path, xyz=cloud.xyz, **{k: cloud.attrs[k] for k in _THROUGHPUT_ATTRS},
              crs=str(cloud.crs.to_string()) if cloud.crs is not None else "")
 
 
@@ -490,9 +494,7 @@ def _run_verb(path: str) -> dict:
     from sylva.core.segment import segment_trees
 
     data = np.load(path)
-    cloud = PointCloud(data["xyz"], attrs={"height": data["height"],
-                                           "classification": data["classification"],
-                                           "intensity": data["intensity"]})
+    cloud = PointCloud(data["xyz"], attrs={k: data[k] for k in _THROUGHPUT_ATTRS})
     t0 = time.perf_counter()
     c0 = time.process_time()
     labels = segment_trees(cloud)
