@@ -47,6 +47,18 @@ def top_window_param() -> Param:
                       "segmentation; left empty (or 0), each method uses its own measured default.")
 
 
+def growth_param() -> Param:
+    """GROWTH of segmenttrees and pipeline: :data:`sylva.core.segment.ncut.method.GROWTH_PRESETS`."""
+    from ..core.segment.ncut.method import GROWTH_PRESETS
+
+    return Param("GROWTH", ENUM, "Trees grown", options=tuple(GROWTH_PRESETS), default="forest", optional=True,
+                 labels=("In a forest stand", "In the open (parks, streets, pasture, orchards)"),
+                 help="forest (default): crowns as wide as trees grown in a stand (Popescu & Wynne 2004). "
+                      "open-grown: trees that grew without neighbours have crowns about 2.5 x as wide, which "
+                      "the forest setting cuts into several trees; pick it for park, street and pasture trees "
+                      "(normalised cut only; values you set under Advanced parameters are kept).")
+
+
 def leaves_param(advanced: bool = False, help: str = "auto: needle clusters on conical crowns, leaf cards "
                                                      "(phyllotaxis, Hu §5.6) otherwise; none: bare wood.") -> Param:
     """LEAVES (the leaf kind to grow) of every algorithm that builds models: :data:`sylva.core.forest.LEAVES`."""

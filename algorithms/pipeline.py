@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
 from .common import (buffer_param, crs_override, leaves_param, lod_param, min_height_param, scheduler_of,
-                     scheduler_param, tiles_and_folder, tiles_input, top_window_param, workers_param)
+                     scheduler_param, tiles_and_folder, tiles_input, top_window_param, workers_param,
+                     growth_param)
 from .segment import SEGMENTATION_LABELS
 from .spec import (BOOLEAN, ENUM, FOLDER_OUT, NUMBER, NUMBER_RESULT,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)
@@ -79,6 +80,7 @@ PIPELINE = Algorithm(
                    "canopy height model (Dalponte & Coomes 2016)."),
         top_window_param(),
         min_height_param(),
+        growth_param(),
         Param("RECONSTRUCT", BOOLEAN, "Reconstruct 3D models", default=True,
               help="Model every tree (hybrid greedy skeleton / guided growth) and write GLB and 3D Tiles; "
                    "off: segmentation and measurements only (much faster)."),

@@ -8,7 +8,7 @@ from ..core.segment import ChmRegionGrowing, NormalizedCut
 from ..core.segment.stems import AutoSegmentation, StemSegmentation
 from ..core.table import VectorTable
 from .common import (build_method, crs_override, drop_noise, input_cloud, load_cloud, method_params, min_height_param,
-                     top_window_param)
+                     top_window_param, growth_param)
 from .spec import (BOOLEAN, ENUM, FILE_OUT, LINE, NO_GEOMETRY, NUMBER, NUMBER_RESULT, POINT, POLYGON, VECTOR_OUT,  # noqa: F401
                    Algorithm, Feedback, Param, Result)
 
@@ -173,6 +173,8 @@ def segmentation_method(args: dict):
         fixed["top_window_m"] = window
         if cls is NormalizedCut:
             fixed["top_window_points"] = fixed["top_window_crown"] = 0.0   # the user's window, exactly
+    if cls is NormalizedCut:
+        fixed["growth"] = args.get("GROWTH") or "forest"
     return build_method(cls, args, **fixed)
 
 
@@ -266,6 +268,7 @@ SEGMENT_TREES = Algorithm(
                    "under Advanced parameters, named after it."),
         top_window_param(),
         min_height_param(),
+        growth_param(),
         *NCUT_PARAMS,
         *CHM_PARAMS,
         *STEMS_PARAMS,

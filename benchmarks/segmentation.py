@@ -74,10 +74,10 @@ def _metrics():
     return sys.modules[name]
 
 
-def _methods():
+def _methods(growth="forest"):
     from sylva.core.segment import ChmRegionGrowing, NormalizedCut
 
-    return [("ncut", NormalizedCut()), ("chm", ChmRegionGrowing())]
+    return [("ncut", NormalizedCut(growth=growth)), ("chm", ChmRegionGrowing())]
 
 
 def _suite_scan(kind, structure, density, seed=0):
@@ -94,27 +94,30 @@ def _suite_scan(kind, structure, density, seed=0):
     return stand, synth.simulate_scan(stand, scan_spec)
 
 
-def _pipeline_labels(scan, tmp):
+def _pipeline_labels(scan, tmp, growth="forest"):
     """treeID of every point of the scan through sylva:pipeline's run_catalog (one tile, no models)."""
     import laspy
 
     from sylva.testing import synth
     from sylva.core.catalog import run_catalog
     from sylva.core.pipeline import PipelineOptions
+    from sylva.core.segment import NormalizedCut
 
     laz, _ = synth.write_scan(scan, tmp, "stand")
-    run_catalog([str(laz)], str(Path(tmp) / "out"), PipelineOptions(reconstruct=False), resume=False)
+    options = PipelineOptions(reconstruct=False, segmentation=NormalizedCut(growth=growth))
+    run_catalog([str(laz)], str(Path(tmp) / "out"), options, resume=False)
     return np.asarray(laspy.read(str(Path(tmp) / "out" / "tiles" / "stand.laz"))["treeID"])
 
 
 def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "medium", "dense"),
-                   densities=(2, 5, 20, 50), seed=0):
+                   densities=(2, 5, 20, 50), seed=0, growth="forest"):
     from sylva.core.segment import segment_trees
     from sylva.core.terrain import normalize
 
     M = _metrics()
     print("1. Detection and point accuracy on the extended synthetic suite (100 m x 100 m; conifer: "
-          "testing/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed)
+          "testing/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed, "; ncut and pipeline "
+          "with the growth preset", repr(growth))
     names = [n for n, _ in _methods()] + ["pipeline"]
     head = f"{'kind':9s} {'stand':6s} {'p/m2':>4s} {'points':>7s} {'trees':>5s} "
     for n in names:
@@ -128,9 +131,9 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
                 stand, scan = _suite_scan(kind, stand_name, density, seed)
                 cloud = normalize(scan.cloud)
                 row = f"{kind:9s} {stand_name:6s} {density:4g} {len(cloud):7d} {len(stand.trees):5d} "
-                runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods()]
+                runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods(growth)]
                 with tempfile.TemporaryDirectory() as tmp:
-                    runs.append(("pipeline", lambda: _pipeline_labels(scan, tmp)))
+                    runs.append(("pipeline", lambda: _pipeline_labels(scan, tmp, growth)))
                     for name, run in runs:
                         labels = run()
                         r = M.evaluate(cloud.xyz, cloud.attrs["height"], labels, scan.truth_tree,
@@ -400,7 +403,10 @@ def real_files(out_dir):
                  reference_title="lidR treeID")
     else:
         print(f"   skipped: {path} not found")
-    for name in ("autzen_trim.laz", "ahn3_delft.xyz"):
+    from sylva.core.segment import NormalizedCut
+
+    # autzen_trim.laz is suburban: its park and street trees grew in the open (growth "open-grown")
+    for name, growth in (("autzen_trim.laz", "forest"), ("autzen_trim.laz", "open-grown"), ("ahn3_delft.xyz", "forest")):
         path = DATA / "als" / name
         if not path.exists():
             print(f"   {name}: skipped, not found")
@@ -408,12 +414,12 @@ def real_files(out_dir):
         from sylva.core.io import read_cloud
 
         t0 = time.perf_counter()
-        tile = segment_tile(read_cloud(str(path)))
+        tile = segment_tile(read_cloud(str(path)), NormalizedCut(growth=growth))
         dt = time.perf_counter() - t0
         _, counts = np.unique(tile.labels[tile.labels > 0], return_counts=True)
-        png = out_dir / (Path(name).stem + ".png")
-        _picture(tile.cloud, tile.labels, png, name)
-        print(f"   {name}: {len(tile.cloud)} points, {len(counts)} trees, under 20 points "
+        png = out_dir / (Path(name).stem + ("" if growth == "forest" else f"_{growth}") + ".png")
+        _picture(tile.cloud, tile.labels, png, f"{name} (growth {growth})")
+        print(f"   {name} (growth {growth}): {len(tile.cloud)} points, {len(counts)} trees, under 20 points "
               f"{(counts < 20).mean() if len(counts) else 0:.1%}, smallest {counts.min() if len(counts) else 0} "
               f"({dt:.1f} s); picture {png.name}")
     print(f"   pictures in {out_dir}")
@@ -547,6 +553,9 @@ def main(argv=None):
     parser.add_argument("--densities", default="2,5,20,50",
                         help="comma-separated pulse densities of the accuracy table")
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic stands")
+    parser.add_argument("--growth", default="forest",
+                        help="NormalizedCut's growth preset of the accuracy table's ncut and pipeline columns "
+                             "(forest, open-grown)")
     parser.add_argument("--out", default=os.path.join(tempfile.gettempdir(), "sylva-bench-segmentation"),
                         help="folder of the crown pictures")
     parser.add_argument("--sizes", default=None,
@@ -587,7 +596,7 @@ def main(argv=None):
         densities = tuple(float(d) if "." in d else int(d) for d in args.densities.split(",") if d)
         kinds = tuple(k for k in args.kinds.split(",") if k)
         if kinds and stands and densities:
-            accuracy_table(kinds, stands, densities, args.seed)
+            accuracy_table(kinds, stands, densities, args.seed, args.growth)
         if not args.no_real:
             real_files(args.out)
             shipped_sample()

@@ -83,11 +83,13 @@ def _reassign(xy, height, labels, bad, tid, txy, th, reach, fallback):
 
 
 def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
-                       reach: float) -> np.ndarray:
+                       reach: float, free: np.ndarray = None, far: bool = True) -> np.ndarray:
     """Labels with every point farther (horizontally) from its tree's top than ``reach`` x the
     crown radius that top's height implies (:func:`crown_radius_m`) moved to the tree
     within reach whose top is nearest in those units and not lower than the point (a point
     no other top reaches keeps its tree: open-grown crowns are wider than the allometry).
+    ``far`` False leaves those points alone.  The points ``free`` (indices of crown points of
+    no tree) go to such a tree as well, or stay 0.
 
     Dalponte & Coomes (2016) bound a crown by a maximum crown diameter; here the bound
     follows the tree's height (Popescu & Wynne 2004 crown width).  It removes the strays
@@ -96,12 +98,15 @@ def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
     if not (labels > 0).any():
         return labels
     tid, txy, th = label_tops(xy, height, labels)
-    pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
-    pos[tid] = np.arange(len(tid))
-    sel = np.flatnonzero(labels > 0)
-    p = pos[labels[sel]]
-    far = np.hypot(xy[sel, 0] - txy[p, 0], xy[sel, 1] - txy[p, 1]) > reach * crown_radius_m(th[p])
-    bad = sel[far]
+    bad = np.zeros(0, dtype=np.int64)
+    if far:
+        pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
+        pos[tid] = np.arange(len(tid))
+        sel = np.flatnonzero(labels > 0)
+        p = pos[labels[sel]]
+        bad = sel[np.hypot(xy[sel, 0] - txy[p, 0], xy[sel, 1] - txy[p, 1]) > reach * crown_radius_m(th[p])]
+    if free is not None:
+        bad = np.r_[bad, free[labels[free] == 0]]
     return _reassign(xy, height, labels, bad, tid, txy, th, reach, labels[bad])
 
 
@@ -141,7 +146,7 @@ LEAN_REACH = 2.0
 
 def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, steep: np.ndarray,
                      bounds, height_ratio: float = LEAN_HEIGHT_RATIO,
-                     reach: float = LEAN_REACH) -> np.ndarray:
+                     reach: float = LEAN_REACH, scale: float = 1.0) -> np.ndarray:
     """Labels with every piece of a crown (an off-centre rounded "tree") merged into the tree
     beside whose crown it lies.
 
@@ -151,7 +156,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     pieces of a split crown (a leader or leaf clump at the edge of a wide crown, cut off with
     the crown's rim around it, has its rim on the far side of its apex).  Such a tree is merged
     into the tree whose top lies the way its crown leans (within 45 degrees of the apex-to-centroid
-    direction, within ``reach`` x that tree's allometric crown radius, :func:`crown_radius_m`),
+    direction, within ``reach`` x that tree's allometric crown radius, :func:`crown_radius_m` times ``scale``),
     at least ``height_ratio`` x as high; the nearest if several.  A steep apex (``steep[id]``, the
     :class:`~sylva.core.tops.SteepApex` test) is a conifer overtopped on one side, whose exposed
     crown does lean away from its neighbour, and a tree whose allometric crown reaches past
@@ -172,7 +177,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     ms = np.maximum(sq / w - cx * cx - cy * cy, 0.0)
     lean = np.column_stack([cx - txy[:, 0], cy - txy[:, 1]])
     off = np.hypot(lean[:, 0], lean[:, 1])
-    r = crown_radius_m(th)
+    r = crown_radius_m(th, scale)
     inside = ((txy[:, 0] - r >= bounds[0]) & (txy[:, 1] - r >= bounds[1])
               & (txy[:, 0] + r <= bounds[2]) & (txy[:, 1] + r <= bounds[3]))
     steep_t = np.zeros(len(tid), dtype=bool)
@@ -185,7 +190,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     is_cand[cand] = True
     kd = cKDTree(txy)
     target = np.full(size, -1, dtype=np.int64)
-    far = reach * crown_radius_m(th.max())
+    far = reach * crown_radius_m(th.max(), scale)
     for c, near in zip(cand, kd.query_ball_point(txy[cand], far)):
         near = np.asarray(near, dtype=np.int64)
         near = near[(near != c) & ~is_cand[near] & (th[near] >= height_ratio * th[c])]
@@ -221,12 +226,13 @@ def _crown_moments(x, y, h, labels, top_h, share):
     return w, sx, sy, sq
 
 
-def crown_radius_m(height_m):
+def crown_radius_m(height_m, scale: float = 1.0):
     """Expected crown radius (m) of a tree ``height_m`` metres high: half the crown width of
     Popescu & Wynne (2004), CW = 2.51503 + 0.00901 h² (pines and deciduous trees together;
-    :meth:`sylva.core.tops.VariableWindow.combined`)."""
+    :meth:`sylva.core.tops.VariableWindow.combined`), times ``scale`` (1: trees grown in a stand;
+    :attr:`NormalizedCut.crown_scale <sylva.core.segment.ncut.NormalizedCut.crown_scale>`)."""
     h = np.asarray(height_m, dtype=np.float64)
-    return 0.5 * (2.51503 + 0.00901 * h * h)
+    return 0.5 * scale * (2.51503 + 0.00901 * h * h)
 
 
 @njit

@@ -388,13 +388,13 @@ def _group_max(group, values, n):
 
 
 def unjoined_plateaus(xy: np.ndarray, height: np.ndarray, touching: np.ndarray, plateau: float,
-                      cover: np.ndarray, steep: np.ndarray):
+                      cover: np.ndarray, steep: np.ndarray, scale: float = 1.0):
     """(higher, lower) top indices of the flat crowns the graph does not join (step 4).
 
     Pairs of tops whose regions do not touch (``touching``: the (p, q), p < q,
     of the regions that do), whose heights differ by less than ``plateau`` x
     the higher, the lower within :data:`PLATEAU_REACH` allometric crown radii
-    of the higher (:func:`crown_radius_m`), both rounded (not ``steep``), the
+    of the higher (:func:`crown_radius_m` times ``scale``), both rounded (not ``steep``), the
     canopy around the higher not closed (``cover`` below :data:`CLOSED_COVER`);
     sorted.  Sylva, not in Hu et al."""
     k = len(height)
@@ -402,7 +402,7 @@ def unjoined_plateaus(xy: np.ndarray, height: np.ndarray, touching: np.ndarray, 
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     from scipy.spatial import cKDTree
 
-    reach = PLATEAU_REACH * crown_radius_m(height)
+    reach = PLATEAU_REACH * crown_radius_m(height, scale)
     near = cKDTree(xy).query_pairs(float(reach.max()), output_type="ndarray").astype(np.int64)
     p, q = near.min(axis=1), near.max(axis=1)
     if len(touching):
@@ -472,7 +472,7 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             low = top_height[lo]
             dip = (low - saddle[i]) / low
             gap = np.hypot(*(graph.xyz[top_voxel[p], :2] - graph.xyz[top_voxel[q], :2]))
-            reach = crown_radius_m(top_height[hi])
+            reach = crown_radius_m(top_height[hi], params.crown_scale)
             factor = params.merge_reach
             if cover is not None and cover[hi] < params.open_cover and not steep[lo]:
                 factor = params.open_reach          # a rounded bump of an open-grown crown
@@ -516,7 +516,7 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
         # flat crowns whose tops the graph does not join: as deep as a saddle can be (dip 1), so any
         # merge across a saddle comes first
         for hi, lo in zip(*unjoined_plateaus(graph.xyz[top_voxel, :2], top_height, pairs,
-                                             params.merge_plateau, cover, steep)):
+                                             params.merge_plateau, cover, steep, params.crown_scale)):
             if (1.0, hi) < (partner_dip[lo], partner[lo]):
                 partner[lo], partner_dip[lo] = hi, 1.0
     for lo in np.flatnonzero(partner >= 0):

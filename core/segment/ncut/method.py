@@ -5,7 +5,7 @@ neighbouring tops (:mod:`.cut`), cleans the trees up (:mod:`.cleanup`) and label
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -40,6 +40,23 @@ COVER_MAX_M = 10.0
 #: At low density the steep-apex window is widened to hold this many canopy
 #: first returns (0.8 m at about 19 points/m², 1.6 m at 5 points/m²).
 APEX_WINDOW_POINTS = 10.0
+
+
+#: Crown radius of a tree grown in the open (park, street, pasture, orchard) as a multiple of Popescu &
+#: Wynne's forest-grown allometry: the isolated park crowns of autzen_trim.laz are 2-3.5 x as wide
+#: (4.6-7 m radius on trees 10-18 m high; :mod:`.islands`), Hasenauer (1997) measures open-grown
+#: crowns likewise much wider than stand-grown ones.
+OPEN_GROWN = 2.5
+
+#: Named sets of defaults for how the trees grew (``NormalizedCut.growth``); a preset's values replace
+#: the fields left at their defaults.  "forest": trees grown in a stand, the defaults.  "open-grown":
+#: crowns OPEN_GROWN x as wide, and a graph that reaches 1.5 m across and 3 m up (a wide clumped crown's
+#: gaps between leaf clumps are wider than the forest's 1 m).  Measured with
+#: ``benchmarks/segmentation.py --kinds parkland --growth open-grown`` (issue 16).
+GROWTH_PRESETS = {
+    "forest": {},
+    "open-grown": dict(crown_scale=OPEN_GROWN, radius_m=1.5, height_m=3.0),
+}
 
 
 @dataclass(frozen=True)
@@ -100,6 +117,13 @@ class NormalizedCut:
     around the top, if fewer).
     ``crown_reach``: points farther from their top than this many allometric
     crown radii move to a tree within reach (0: off).
+    ``crown_scale``: the trees' crown radius as a multiple of Popescu & Wynne's
+    (2004) allometry for trees grown in a stand (:func:`~.cleanup.crown_radius_m`),
+    which scales every crown radius above (top window, merge reaches, crown
+    reach, the off-centre and small-tree merges); 1 for forests,
+    :data:`OPEN_GROWN` for trees grown in the open (the "open-grown" preset).
+    ``growth``: a key of :data:`GROWTH_PRESETS` ("forest", "open-grown"), whose
+    values replace the fields left at their defaults.
     ``climb``: cost per metre climbed of the geodesic start partition.
     ``attach_m``: reach of unconnected crown pieces to the nearest tree.
     """
@@ -131,14 +155,23 @@ class NormalizedCut:
     understory_extent_m: float = 2.5
     min_tree_points: int = MIN_TREE_POINTS
     crown_reach: float = 1.25
+    crown_scale: float = 1.0
     climb: float = 100.0
     attach_m: float = 2.0
+    growth: str = "forest"
 
     def __post_init__(self):
         if self.top_window_m is None:   # "not given" (an optional GUI/CLI parameter)
             object.__setattr__(self, "top_window_m", 2.0)
+        if self.growth not in GROWTH_PRESETS:
+            raise ParameterError(f"NormalizedCut: unknown growth {self.growth!r}; choose one of "
+                                 f"{', '.join(GROWTH_PRESETS)}")
+        defaults = {f.name: f.default for f in fields(self)}
+        for key, value in GROWTH_PRESETS[self.growth].items():
+            if getattr(self, key) == defaults[key]:
+                object.__setattr__(self, key, value)
         for name in ("voxel_m", "radius_m", "height_m", "sigma_h_m", "sigma_v_m", "sigma_intensity",
-                     "sigma_colour", "merge_ncut", "always_merge_ncut"):
+                     "sigma_colour", "merge_ncut", "always_merge_ncut", "crown_scale"):
             if not 0 < getattr(self, name) < float("inf"):
                 raise ParameterError(f"NormalizedCut.{name} must be a positive finite number, "
                                      f"not {getattr(self, name)}")
@@ -177,7 +210,7 @@ class NormalizedCut:
         if self.top_window_points > 0:
             wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
         if self.top_window_crown > 0:
-            wide = np.maximum(wide, self.top_window_crown * 2.0 * crown_radius_m(height))
+            wide = np.maximum(wide, self.top_window_crown * 2.0 * crown_radius_m(height, self.crown_scale))
         apex = np.zeros(len(local))
         if self.apex_window_m > 0:
             apex = np.maximum(float(self.apex_window_m),
@@ -205,7 +238,7 @@ class NormalizedCut:
         crown-reach merge; (None, None) when ``open_cover`` is 0."""
         if self.open_cover <= 0:
             return None, None
-        reach = np.minimum(COVER_REACH * crown_radius_m(top_height), COVER_MAX_M)
+        reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
         cover = canopy_cover_at_tops(local, height, crown, graph.xyz[top_voxel, :2], top_height, reach)
         steep = np.zeros(len(top_id), dtype=bool)
         if self.apex_window_m > 0:
@@ -247,6 +280,8 @@ class NormalizedCut:
         if len(local_tops) == 0 or graph.n == 0:
             return labels
         top_voxel, top_id, top_height = top_voxels(graph, local_tops, self)
+        if len(top_voxel) == 0:          # given tops, none of them on (or near) a crown
+            return labels
         if found and self.understory_points > 0:
             # crowns under the canopy that no surface top reaches: trees of their own
             extra, extra_h = topless_crowns(graph, height[crown], local[crown, :2], top_voxel,
@@ -274,7 +309,7 @@ class NormalizedCut:
         above[above] = height[above] > top_h[labels[above]] + TOP_TOLERANCE_M
         labels[above] = 0
         if self.crown_reach > 0:
-            labels = within_crown_reach(local[:, :2], height, labels, self.crown_reach)
+            labels = within_crown_reach(local[:, :2], height, labels, self.crown_reach * self.crown_scale)
         # stems and low branches (below min_height_m, or crown points no top
         # reached): the label of the crown right above them in their column
         low = np.flatnonzero((labels == 0) & ~ground)
@@ -294,11 +329,16 @@ class NormalizedCut:
         steep_id[top_id] = steep
         xy = local[:, :2]
         bounds = (*coord_min(xy), *coord_max(xy))
-        labels = merge_off_centre(xy, height, labels, steep_id, bounds)
+        labels = merge_off_centre(xy, height, labels, steep_id, bounds, scale=self.crown_scale)
         # an open-grown crown: a round canopy island too wide for a forest crown
         labels = merge_round_islands(xy, height, labels, bounds, self.min_height_m)
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
-            labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0))
+            labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0) * self.crown_scale)
+        # crown points no top reached (graph pieces beyond radius_m of every tree, under no crown): the
+        # tree within crown reach whose top is nearest, as within_crown_reach places strays
+        free = np.flatnonzero(crown & (labels == 0))
+        if len(free) and self.crown_reach > 0:
+            labels = within_crown_reach(xy, height, labels, self.crown_reach * self.crown_scale, free, far=False)
         return labels
