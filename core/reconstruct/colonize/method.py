@@ -7,12 +7,13 @@ points, fills a hollow crown with markers and grows the skeleton with :mod:`.gro
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
 from ...errors import InputError
+from ...presets import apply_preset
 from ...progress import CancelCheck, Progress, check, report
 from ..model import Reconstruction, Skeleton, TreePoints, screen
 from ..trunk import add_trunk_points
@@ -126,10 +127,7 @@ class GuidedGrowth:
             if self.species not in SPECIES_PRESETS:
                 raise InputError(f"GuidedGrowth: unknown species {self.species!r}; choose one of "
                                  f"{', '.join(SPECIES_PRESETS)} (or None)")
-            defaults = {f.name: f.default for f in fields(self)}
-            for key, value in SPECIES_PRESETS[self.species].items():
-                if getattr(self, key) == defaults[key]:
-                    object.__setattr__(self, key, value)
+            apply_preset(self, SPECIES_PRESETS[self.species])
         for attr in ("step_m", "kill_distance_m", "influence_h0", "influence_rho0", "influence_min_units",
                      "similarity_radius_m", "fill_spacing_m", "root_band_m", "root_link_m",
                      "trunk_radius_m"):

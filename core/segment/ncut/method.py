@@ -5,11 +5,12 @@ neighbouring tops (:mod:`.cut`), cleans the trees up (:mod:`.cleanup`) and label
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from ...errors import ParameterError
+from ...presets import apply_preset
 from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
@@ -166,10 +167,7 @@ class NormalizedCut:
         if self.growth not in GROWTH_PRESETS:
             raise ParameterError(f"NormalizedCut: unknown growth {self.growth!r}; choose one of "
                                  f"{', '.join(GROWTH_PRESETS)}")
-        defaults = {f.name: f.default for f in fields(self)}
-        for key, value in GROWTH_PRESETS[self.growth].items():
-            if getattr(self, key) == defaults[key]:
-                object.__setattr__(self, key, value)
+        apply_preset(self, GROWTH_PRESETS[self.growth])
         for name in ("voxel_m", "radius_m", "height_m", "sigma_h_m", "sigma_v_m", "sigma_intensity",
                      "sigma_colour", "merge_ncut", "always_merge_ncut", "crown_scale"):
             if not 0 < getattr(self, name) < float("inf"):
