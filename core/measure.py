@@ -19,6 +19,11 @@ vectorised pass over points sorted by (treeID, height):
 * **crown**: the 2-D hull of the crown points (convex, or concave with
   shapely's concave hull and a ``concavity`` ratio), ``crown_area`` (m²) and
   ``crown_diameter`` (m) = the diameter of the circle of the same area.
+* **quality**: ``sparse`` for a tree of fewer than
+  :data:`~sylva.core.tops.MIN_TREE_POINTS` (20) points, which a segmentation
+  keeps only where the scan is sparse (its height and crown rest on few
+  echoes), ``ok`` otherwise; a reconstruction refines the same column
+  (:func:`sylva.core.forest.model_trees`: ``fallback``, ``noise``).
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ import numpy as np
 import shapely
 
 from .cloud import PointCloud
+from .tops import MIN_TREE_POINTS
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,7 @@ class TreeMetrics:
             "tree_id": self.tree_id, "x": self.x, "y": self.y, "ground_z": self.ground_z,
             "height": self.height, "crown_area": self.crown_area, "crown_diameter": self.crown_diameter,
             "crown_base_height": self.crown_base_height, "n_points": self.n_points,
+            "quality": np.where(self.n_points < MIN_TREE_POINTS, "sparse", "ok").astype(object),
         }
 
 

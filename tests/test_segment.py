@@ -960,3 +960,18 @@ def test_the_open_grown_preset_keeps_park_trees_whole():
                           for m in (NormalizedCut(), preset))
     assert open_grown["n_detected"] < forest["n_detected"]
     assert open_grown["f1"] > forest["f1"] + 0.15, (forest["f1"], open_grown["f1"])
+
+
+def test_the_trees_table_flags_a_tree_of_few_points():
+    """A tree under MIN_TREE_POINTS (20) points is kept where the scan is sparse, never silently: the trees
+    table of the segmentation says ``quality`` sparse (issue 16), the others ok."""
+    from sylva.core.measure import tree_metrics
+    from sylva.core.tops import MIN_TREE_POINTS
+
+    cloud, truth = cones([(8.0, 8.0, 18.0, 3.5), (20.0, 9.0, 22.0, 4.0)], (30, 20))
+    labels = truth.copy()
+    second = np.flatnonzero(labels == 2)
+    labels[second[MIN_TREE_POINTS - 1:]] = 0          # tree 2 keeps 19 points
+    columns = tree_metrics(cloud, labels).columns()
+    assert list(columns["n_points"]) == [int((truth == 1).sum()), MIN_TREE_POINTS - 1]
+    assert list(columns["quality"]) == ["ok", "sparse"]

@@ -9,7 +9,7 @@ import pytest
 from sylva.core.io.gpkg import read_gpkg
 
 TREE_FIELDS = ["tree_id", "x", "y", "ground_z", "height", "crown_area", "crown_diameter",
-               "crown_base_height", "n_points"]
+               "crown_base_height", "n_points", "quality"]
 
 
 @pytest.mark.qgis
@@ -40,8 +40,9 @@ def test_segmenttrees_outputs_open_in_qgis(sylva_provider, sample_laz, tmp_path,
     real = []
     for f in layers["TREES"].getFeatures():
         assert f["n_points"] == counts[f["tree_id"]]
+        assert f["quality"] == ("sparse" if f["n_points"] < 20 else "ok")   # a small tree is flagged
         assert 0 <= f["crown_base_height"] <= f["height"]
-        if f["n_points"] >= 10:  # tiny segments are kept (flagged later), but real trees have crowns
+        if f["n_points"] >= 10:  # tiny segments are kept (flagged), but real trees have crowns
             real.append(f["crown_diameter"] > 0 and f["crown_base_height"] < f["height"])
     assert np.mean(real) >= 0.95
     assert layers["CROWN_POINTS"].featureCount() + layers["STEM_POINTS"].featureCount() == int((labels > 0).sum())
