@@ -20,13 +20,14 @@ def run(args: dict, feedback: Feedback) -> Result:
     from ..core.pipeline import PipelineOptions
 
     inputs, out = tiles_and_folder(args)
-    from .segment import segmentation_method
+    from .segment import segmentation_method, warn_unused_growth
 
     options = PipelineOptions(
         buffer_m=float(args["BUFFER_M"]), segmentation=segmentation_method(args),
         reconstruct=bool(args["RECONSTRUCT"]), lod=int(args["LOD"]), leaves=args["LEAVES"],
         billboards=bool(args["BILLBOARDS"]), chunk_size_m=float(args["CHUNK_SIZE_M"]),
         crs=args.get("CRS") or None)
+    warn_unused_growth(args, feedback, options.segmentation)
     scheduler = scheduler_of(args)
     report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
                          resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)

@@ -178,6 +178,14 @@ def segmentation_method(args: dict):
     return build_method(cls, args, **fixed)
 
 
+def warn_unused_growth(args: dict, feedback: Feedback, method) -> None:
+    """GROWTH shapes the normalised cut only: say so when another method runs with a preset chosen."""
+    growth = args.get("GROWTH") or "forest"
+    if growth != "forest" and not isinstance(method, NormalizedCut):
+        used = next((k for k, cls in METHODS.items() if type(method) is cls), type(method).__name__)
+        feedback.warn(f"GROWTH {growth} shapes the normalised cut (METHOD ncut) only; METHOD {used} ignores it")
+
+
 def run_segment(args: dict, feedback: Feedback) -> Result:
     import shapely
 
@@ -197,6 +205,7 @@ def run_segment(args: dict, feedback: Feedback) -> Result:
         # airborne tiles need their CRS; a terrestrial plot scan may be in a local engineering frame
         raise CRSError(f"{args['INPUT']}: the file has no coordinate reference system; "
                        "set the CRS parameter (for example EPSG:32632)")
+    warn_unused_growth(args, feedback, seg.method)
     if args["METHOD"] == "auto":
         feedback.info("a terrestrial plot scan: trees segmented by their stems (METHOD stems)" if stems else
                       "trees segmented by the normalised cut (METHOD ncut; not a terrestrial plot scan)")

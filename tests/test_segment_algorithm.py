@@ -96,3 +96,17 @@ def test_pipeline_and_segmenttrees_give_the_same_trees(tmp_path, sample_laz, gro
     # the sample is a forest: the open-grown preset joins its crowns into fewer, wider trees
     assert len(pairs) > 200 if growth == "forest" else 50 < len(pairs) < 200
     assert ((a == 0) == (b == 0)).all()
+
+
+def test_growth_with_another_method_says_it_is_ignored(tmp_path, sample_laz):
+    """GROWTH shapes the normalised cut only: a run of METHOD chm with GROWTH open-grown says so in one line,
+    a run of the normalised cut does not."""
+    said = []
+    for method in ("chm", "ncut"):
+        run = subprocess.run([sys.executable, "-m", "sylva.cli", "segmenttrees", f"--INPUT={sample_laz}",
+                              f"--METHOD={method}", "--GROWTH=open-grown", f"--TREES={tmp_path / method}.gpkg"],
+                             capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        said.append([line for line in (run.stdout + run.stderr).splitlines() if "GROWTH" in line])
+    assert said[0] == ["GROWTH open-grown shapes the normalised cut (METHOD ncut) only; METHOD chm ignores it"]
+    assert said[1] == []
