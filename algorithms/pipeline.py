@@ -2,9 +2,8 @@
 from __future__ import annotations
 
 from ..core.segment import ChmRegionGrowing, NormalizedCut
-from .common import (buffer_param, crs_override, leaves_param, lod_param, min_height_param, scheduler_of,
-                     scheduler_param, tiles_and_folder, tiles_input, top_window_param, workers_param,
-                     growth_param)
+from .common import (buffer_param, crs_override, growth_param, leaves_param, lod_param, min_height_param,
+                     scheduler_of, scheduler_param, tiles_and_folder, tiles_input, top_window_param, workers_param)
 from .segment import SEGMENTATION_LABELS
 from .spec import (BOOLEAN, ENUM, FOLDER_OUT, NUMBER, NUMBER_RESULT,
                    STRING_RESULT, Algorithm, Feedback, Param, Result)

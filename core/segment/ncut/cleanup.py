@@ -83,13 +83,11 @@ def _reassign(xy, height, labels, bad, tid, txy, th, reach, fallback):
 
 
 def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
-                       reach: float, free: np.ndarray = None, far: bool = True) -> np.ndarray:
+                       reach: float) -> np.ndarray:
     """Labels with every point farther (horizontally) from its tree's top than ``reach`` x the
     crown radius that top's height implies (:func:`crown_radius_m`) moved to the tree
     within reach whose top is nearest in those units and not lower than the point (a point
     no other top reaches keeps its tree: open-grown crowns are wider than the allometry).
-    ``far`` False leaves those points alone.  The points ``free`` (indices of crown points of
-    no tree) go to such a tree as well, or stay 0.
 
     Dalponte & Coomes (2016) bound a crown by a maximum crown diameter; here the bound
     follows the tree's height (Popescu & Wynne 2004 crown width).  It removes the strays
@@ -98,16 +96,24 @@ def within_crown_reach(xy: np.ndarray, height: np.ndarray, labels: np.ndarray,
     if not (labels > 0).any():
         return labels
     tid, txy, th = label_tops(xy, height, labels)
-    bad = np.zeros(0, dtype=np.int64)
-    if far:
-        pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
-        pos[tid] = np.arange(len(tid))
-        sel = np.flatnonzero(labels > 0)
-        p = pos[labels[sel]]
-        bad = sel[np.hypot(xy[sel, 0] - txy[p, 0], xy[sel, 1] - txy[p, 1]) > reach * crown_radius_m(th[p])]
-    if free is not None:
-        bad = np.r_[bad, free[labels[free] == 0]]
+    pos = np.zeros(int(tid.max()) + 1, dtype=np.int64)
+    pos[tid] = np.arange(len(tid))
+    sel = np.flatnonzero(labels > 0)
+    p = pos[labels[sel]]
+    far = np.hypot(xy[sel, 0] - txy[p, 0], xy[sel, 1] - txy[p, 1]) > reach * crown_radius_m(th[p])
+    bad = sel[far]
     return _reassign(xy, height, labels, bad, tid, txy, th, reach, labels[bad])
+
+
+def attach_free(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, free: np.ndarray,
+                reach: float) -> np.ndarray:
+    """Labels with the points ``free`` (indices of crown points of no tree: graph pieces no top
+    reached) given to the tree within ``reach`` crown radii whose top is nearest, as
+    :func:`within_crown_reach` places its strays; with none in reach they stay 0."""
+    if len(free) == 0 or not (labels > 0).any():
+        return labels
+    tid, txy, th = label_tops(xy, height, labels)
+    return _reassign(xy, height, labels, free, tid, txy, th, reach, 0)
 
 
 def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_points: np.ndarray,

@@ -15,7 +15,8 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import TOP_TOLERANCE_M, crown_radius_m, merge_off_centre, merge_small, within_crown_reach
+from .cleanup import (TOP_TOLERANCE_M, attach_free, crown_radius_m, merge_off_centre, merge_small,
+                      within_crown_reach)
 from .cut import cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
@@ -336,7 +337,7 @@ class NormalizedCut:
             labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0) * self.crown_scale)
         # crown points no top reached (graph pieces beyond radius_m of every tree, under no crown): the
         # tree within crown reach whose top is nearest, as within_crown_reach places strays
-        free = np.flatnonzero(crown & (labels == 0))
-        if len(free) and self.crown_reach > 0:
-            labels = within_crown_reach(xy, height, labels, self.crown_reach * self.crown_scale, free, far=False)
+        if self.crown_reach > 0:
+            labels = attach_free(xy, height, labels, np.flatnonzero(crown & (labels == 0)),
+                                 self.crown_reach * self.crown_scale)
         return labels
