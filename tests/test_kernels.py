@@ -90,6 +90,8 @@ HELPER_CASES = {
         (np.zeros((0, 2)), 1.0, 100),                                                # no position
     ],
     "bucket_by_cell": [(np.random.default_rng(3).integers(0, 50, 400), 50), (np.zeros(0, dtype=np.int64), 3)],
+    "_grid3": [(np.random.default_rng(4).uniform(-5.0, 25.0, (300, 3)), 1.0),
+               (np.random.default_rng(5).uniform(0.0, 1e3, (50, 3)), 0.5)],          # cells widened
     "uf_find": [(np.array([0, 0, 1, 2, 4, 4]), 3), (np.arange(5), 4)],
     "uf_union": [(np.array([0, 0, 1, 2, 4, 4]), 3, 5), (np.array([0, 0, 1, 2, 4, 4]), 3, 1)],
     "grown_nodes": [(7, 3, np.arange(15.0).reshape(5, 3), -np.arange(15.0).reshape(5, 3), np.array([-1, 0, 1, 2, 3]),

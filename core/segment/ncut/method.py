@@ -15,9 +15,9 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import (TOP_TOLERANCE_M, attach_free, crown_radius_m, merge_off_centre, merge_small,
-                      within_crown_reach)
-from .cut import cut_graph
+from .cleanup import (TOP_TOLERANCE_M, attach_free, crown_radius_m, merge_off_centre, merge_plateaus,
+                      merge_small, within_crown_reach)
+from .cut import PLATEAU_REACH, cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
 from .islands import merge_round_islands
@@ -340,4 +340,8 @@ class NormalizedCut:
         if self.crown_reach > 0:
             labels = attach_free(xy, height, labels, np.flatnonzero(crown & (labels == 0)),
                                  self.crown_reach * self.crown_scale)
+        # a top that rises nowhere above the crown it touches: a leader or flank of a flat crown
+        if self.merge_plateau > 0:
+            labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
+                                    0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale)
         return labels
