@@ -92,6 +92,8 @@ HELPER_CASES = {
     "bucket_by_cell": [(np.random.default_rng(3).integers(0, 50, 400), 50), (np.zeros(0, dtype=np.int64), 3)],
     "_grid3": [(np.random.default_rng(4).uniform(-5.0, 25.0, (300, 3)), 1.0),
                (np.random.default_rng(5).uniform(0.0, 1e3, (50, 3)), 0.5)],          # cells widened
+    "_near_cells": [(13, 3, 3, 3, np.zeros(27, dtype=np.int64)), (0, 3, 3, 3, np.zeros(27, dtype=np.int64)),
+                    (5, 1, 2, 4, np.zeros(27, dtype=np.int64))],                  # 27, 8 and 6 cells
     "uf_find": [(np.array([0, 0, 1, 2, 4, 4]), 3), (np.arange(5), 4)],
     "uf_union": [(np.array([0, 0, 1, 2, 4, 4]), 3, 5), (np.array([0, 0, 1, 2, 4, 4]), 3, 1)],
     "grown_nodes": [(7, 3, np.arange(15.0).reshape(5, 3), -np.arange(15.0).reshape(5, 3), np.array([-1, 0, 1, 2, 3]),

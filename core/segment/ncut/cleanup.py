@@ -34,6 +34,19 @@ def label_tops(xy, height, labels):
     return labels[top], xy[top], height[top]
 
 
+def _tops_within(xy, height, labels, bounds, scale):
+    """label_tops plus every label's top height (``top_h[id]``, 0 for none), the tops' allometric
+    crown radii and whether that crown lies within ``bounds`` (xmin, ymin, xmax, ymax: the data's
+    extent, a tile's buffer edge; a crown reaching past it may be cut by it)."""
+    tid, txy, th = label_tops(xy, height, labels)
+    top_h = np.zeros(int(labels.max()) + 1)
+    top_h[tid] = th
+    r = crown_radius_m(th, scale)
+    inside = ((txy[:, 0] - r >= bounds[0]) & (txy[:, 1] - r >= bounds[1])
+              & (txy[:, 0] + r <= bounds[2]) & (txy[:, 1] + r <= bounds[3]))
+    return tid, txy, th, top_h, r, inside
+
+
 @njit
 def _label_maxima(xy, h, labels, size):
     """Ascending by label: the index of the highest point of every label > 0 (ties: lowest x,
@@ -170,10 +183,8 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     it: both are left alone.  No per-tile statistic.  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
-    tid, txy, th = label_tops(xy, height, labels)
-    size = int(labels.max()) + 1
-    top_h = np.zeros(size)
-    top_h[tid] = th
+    tid, txy, th, top_h, r, inside = _tops_within(xy, height, labels, bounds, scale)
+    size = len(top_h)
     w, sx, sy, sq = _crown_moments(np.ascontiguousarray(xy[:, 0], dtype=np.float64),
                                    np.ascontiguousarray(xy[:, 1], dtype=np.float64),
                                    np.ascontiguousarray(height, dtype=np.float64),
@@ -183,9 +194,6 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     ms = np.maximum(sq / w - cx * cx - cy * cy, 0.0)
     lean = np.column_stack([cx - txy[:, 0], cy - txy[:, 1]])
     off = np.hypot(lean[:, 0], lean[:, 1])
-    r = crown_radius_m(th, scale)
-    inside = ((txy[:, 0] - r >= bounds[0]) & (txy[:, 1] - r >= bounds[1])
-              & (txy[:, 0] + r <= bounds[2]) & (txy[:, 1] + r <= bounds[3]))
     steep_t = np.zeros(len(tid), dtype=bool)
     known = tid < len(steep)
     steep_t[known] = steep[tid[known]]
@@ -232,15 +240,10 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     (step 5)."""
     if not (labels > 0).any():
         return labels
-    tid, txy, th = label_tops(xy, height, labels)
-    size = int(labels.max()) + 1
-    top_h = np.zeros(size)
-    top_h[tid] = th
-    r = crown_radius_m(th, scale)
+    tid, txy, th, top_h, r, inside = _tops_within(xy, height, labels, bounds, scale)
+    size = len(top_h)
     tx, ty, far = np.zeros(size), np.zeros(size), np.zeros(size)
     tx[tid], ty[tid], far[tid] = txy[:, 0], txy[:, 1], reach * r
-    inside = ((txy[:, 0] - r >= bounds[0]) & (txy[:, 1] - r >= bounds[1])
-              & (txy[:, 0] + r <= bounds[2]) & (txy[:, 1] + r <= bounds[3]))
     # the trees with a top of nearly their height within reach (from the tops alone)
     p, q = cKDTree(txy).query_pairs(float(far.max(initial=0.0)), output_type="ndarray").T
     hi, lo = np.where(th[p] >= th[q], p, q), np.where(th[p] >= th[q], q, p)
@@ -328,6 +331,20 @@ def _grid3(xyz, r):
     return cid, start, member, gx, gy, gz
 
 
+@helper
+def _near_cells(c, gx, gy, gz, out):
+    """The cells of a :func:`_grid3` grid around and including cell ``c`` (up to 27) into ``out``;
+    returns how many."""
+    cx, cy, cz = c // (gy * gz), (c // gz) % gy, c % gz
+    k = 0
+    for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
+        for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
+            for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
+                out[k] = (ix * gy + iy) * gz + iz
+                k += 1
+    return k
+
+
 @njit
 def _pairs_within(xyz, query, r):
     """Every (query[i], j, distance) with point j within ``r`` of point query[i] (d² <= r²,
@@ -339,29 +356,26 @@ def _pairs_within(xyz, query, r):
     out_i = np.empty(0, dtype=np.int64)
     out_j = np.empty(0, dtype=np.int64)
     out_d = np.empty(0)
+    cells = np.empty(27, dtype=np.int64)
     for rnd in range(2):            # count, then fill
         k = 0
         for q in range(len(query)):
             p = query[q]
             px, py, pz = xyz[p, 0], xyz[p, 1], xyz[p, 2]
-            c = cid[p]
-            cx, cy, cz = c // (gy * gz), (c // gz) % gy, c % gz
-            for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
-                for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
-                    for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
-                        g = (ix * gy + iy) * gz + iz
-                        for t in range(start[g], start[g + 1]):
-                            j = member[t]
-                            dx = px - xyz[j, 0]
-                            dy = py - xyz[j, 1]
-                            dz = pz - xyz[j, 2]
-                            d2 = (dx * dx + dy * dy) + dz * dz
-                            if d2 <= r2:
-                                if rnd == 1:
-                                    out_i[k] = p
-                                    out_j[k] = j
-                                    out_d[k] = np.sqrt(d2)
-                                k += 1
+            for m in range(_near_cells(cid[p], gx, gy, gz, cells)):
+                g = cells[m]
+                for t in range(start[g], start[g + 1]):
+                    j = member[t]
+                    dx = px - xyz[j, 0]
+                    dy = py - xyz[j, 1]
+                    dz = pz - xyz[j, 2]
+                    d2 = (dx * dx + dy * dy) + dz * dz
+                    if d2 <= r2:
+                        if rnd == 1:
+                            out_i[k] = p
+                            out_j[k] = j
+                            out_d[k] = np.sqrt(d2)
+                        k += 1
         if rnd == 0:
             out_i = np.empty(k, dtype=np.int64)
             out_j = np.empty(k, dtype=np.int64)
@@ -379,35 +393,31 @@ def _level_contacts(xyz, labels, r, top_h, tx, ty, reach, plateau, prominence):
     best = np.full(size, -np.inf)
     partner = np.full(size, -1, dtype=np.int64)
     r2 = r * r
+    cells = np.empty(27, dtype=np.int64)
     for p in range(xyz.shape[0]):
         a = labels[p]
-        pz = xyz[p, 2]
+        px, py, pz = xyz[p, 0], xyz[p, 1], xyz[p, 2]
         if top_h[a] - pz >= prominence * top_h[a]:
             continue
-        px, py = xyz[p, 0], xyz[p, 1]
-        c = cid[p]
-        cx, cy, cz = c // (gy * gz), (c // gz) % gy, c % gz
-        for ix in range(max(cx - 1, 0), min(cx + 2, gx)):
-            for iy in range(max(cy - 1, 0), min(cy + 2, gy)):
-                for iz in range(max(cz - 1, 0), min(cz + 2, gz)):
-                    g = (ix * gy + iy) * gz + iz
-                    for t in range(start[g], start[g + 1]):
-                        j = member[t]
-                        b = labels[j]
-                        if b == a or top_h[b] < top_h[a] or (top_h[b] == top_h[a] and b > a):
-                            continue                    # b must be the higher top (ties: the lower id)
-                        dx = px - xyz[j, 0]
-                        dy = py - xyz[j, 1]
-                        dz = pz - xyz[j, 2]
-                        if (dx * dx + dy * dy) + dz * dz > r2:
-                            continue
-                        saddle = min(pz, xyz[j, 2])
-                        if (top_h[a] < (1.0 - plateau) * top_h[b] or top_h[a] - saddle >= prominence * top_h[a]
-                                or np.hypot(tx[a] - tx[b], ty[a] - ty[b]) >= reach[b]):
-                            continue
-                        if saddle > best[a] or (saddle == best[a] and b < partner[a]):
-                            best[a] = saddle
-                            partner[a] = b
+        for m in range(_near_cells(cid[p], gx, gy, gz, cells)):
+            g = cells[m]
+            for t in range(start[g], start[g + 1]):
+                j = member[t]
+                b = labels[j]
+                if b == a or top_h[b] < top_h[a] or (top_h[b] == top_h[a] and b > a):
+                    continue                    # b must be the higher top (ties: the lower id)
+                dx = px - xyz[j, 0]
+                dy = py - xyz[j, 1]
+                dz = pz - xyz[j, 2]
+                if (dx * dx + dy * dy) + dz * dz > r2:
+                    continue
+                saddle = min(pz, xyz[j, 2])
+                if (top_h[a] < (1.0 - plateau) * top_h[b] or top_h[a] - saddle >= prominence * top_h[a]
+                        or np.hypot(tx[a] - tx[b], ty[a] - ty[b]) >= reach[b]):
+                    continue
+                if saddle > best[a] or (saddle == best[a] and b < partner[a]):
+                    best[a] = saddle
+                    partner[a] = b
     return partner
 
 
