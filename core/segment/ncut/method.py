@@ -98,7 +98,10 @@ class NormalizedCut:
     heights differ by less than this fraction are one flat crown up to
     ``PLATEAU_REACH`` crown radii apart, also when their regions do not
     touch if both are rounded and the canopy is not closed
-    (:func:`~.cut.unjoined_plateaus`; needs ``open_cover`` > 0).
+    (:func:`~.cut.unjoined_plateaus`; needs ``open_cover`` > 0), and, judged
+    again on the finished crowns, when the lower one's crown touches the
+    higher's less than half ``merge_prominence`` below its top
+    (:func:`~.cleanup.merge_plateaus`; 0 turns both off).
     ``merge_height_ratio``: a lower top under this fraction of the higher
     top's height that rises above their saddle, beyond ``UNDER_CROWN`` crown
     radii of it, is the apex of a tree of a lower crown class, not a bump of
