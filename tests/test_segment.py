@@ -545,12 +545,13 @@ def test_merging_open_grown_islands_gives_a_truer_count_and_a_better_f1(monkeypa
 def test_leaders_the_graph_does_not_join_are_one_crown(monkeypatch):
     """On open broadleaves the benchmarks do not use (seed 2, 60 m, 5 points/m2), merging level
     rounded tops whose regions do not touch gives fewer trees and a better detection F1."""
-    from sylva.core.segment.ncut import cut
+    from sylva.core.segment.ncut import cut, method
 
-    # CLOSED_COVER 0: no canopy is open enough, the rule is off (merge_plateaus, judging level tops
-    # on the finished crowns, still merges those whose crowns touch: 52 -> 48 trees, F1 +0.014)
+    # the rule alone: merge_plateaus (the same plateau judged on the finished crowns) off in both runs;
+    # CLOSED_COVER 0: no canopy is open enough, the rule is off
+    monkeypatch.setattr(method, "merge_plateaus", _no_op)
     on, off = _with_and_without(monkeypatch, cut, "CLOSED_COVER", 0.0, "broadleaf", "open", 5)
-    assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"] + 0.01
+    assert on["n_detected"] < off["n_detected"] and on["f1"] > off["f1"] + 0.03
 
 
 def test_a_top_of_a_lower_crown_class_stays_a_tree():
