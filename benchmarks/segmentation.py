@@ -20,8 +20,10 @@ Prints, for every method side by side:
    the default method, where the F1 is lost (metrics.losses: false positives
    that are pieces of a matched crown or crowns whose top the matching
    misses; misses inside another tree's segment, and misses whose apex is
-   under a neighbour's crown); each method's median 2-D crown IoU with the
-   true trees (the measure of 2.);
+   under a neighbour's crown), and the F1 and median crown IoU it reaches
+   given each true tree's highest point as its top, beside the IoU of
+   ChmRegionGrowing's crowns from the same tops (the crown boundaries alone);
+   each method's median 2-D crown IoU with the true trees (the measure of 2.);
 2. on ../shared/data/als/MixedConifer.laz (heights already normalised): the
    number of trees and, for trees matched one-to-one to lidR's own treeID
    labels, the median 2-D convex-hull crown IoU (skipped when absent), and a
@@ -29,7 +31,10 @@ Prints, for every method side by side:
    grows Dalponte's CHM regions from the tops NormalizedCut keeps (which
    part of the disagreement is crown boundaries, which is tops), a row
    'chm 4 m' is ChmRegionGrowing with a 4 m top window (what lidR's labels
-   look like: a CHM method);
+   look like: a CHM method); rows 'ncut@lidR' and 'chm@lidR' give both
+   methods lidR's own tops (each lidR tree's highest point), so their IoU
+   measures the crown boundaries alone (how alike the two partitions are,
+   not the tops);
    and the same detection scores as in 1. on the plugin's shipped sample
    (resources/sample/sample.laz against sample_trees.csv);
 3. throughput (points/s through the whole segment_trees verb: tops,
@@ -111,7 +116,7 @@ def _pipeline_labels(scan, tmp, growth="forest"):
 
 def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "medium", "dense"),
                    densities=(2, 5, 20, 50), seed=0, growth="forest"):
-    from sylva.core.segment import segment_trees
+    from sylva.core.segment import ChmRegionGrowing, segment_trees
     from sylva.core.terrain import normalize
 
     M = _metrics()
@@ -146,21 +151,28 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
                         row += (f"| {'':8s} {r['n_detected']:4d} {r['precision']:.3f} {r['recall']:.3f} "
                                 f"{r['f1']:.3f} {r['point_accuracy']:.3f} {iou:.3f} {small:4.2f} ")
                         if name == names[0]:
-                            # the same method given the true apexes as tops: what the cut and merges lose
-                            given = segment_trees(cloud, _methods(growth)[0][1],
-                                                  tops=_apex_tops(cloud, scan.truth_tree, keep_ids=True))
+                            # the same method given the true apexes as tops: what the cut and merges lose;
+                            # Dalponte's CHM regions from the same tops: the crown boundaries alone
+                            apexes = _apex_tops(cloud, scan.truth_tree, keep_ids=True)
+                            given = segment_trees(cloud, _methods(growth)[0][1], tops=apexes)
                             g = M.evaluate(cloud.xyz, cloud.attrs["height"], given, scan.truth_tree, stand.trees)
+                            given_iou = {n: np.median(M.crown_iou(cloud.xyz[:, :2], lab, scan.truth_tree)[2])
+                                         for n, lab in ((names[0], given), ("chm", segment_trees(
+                                             cloud, ChmRegionGrowing(), tops=apexes)))}
                             loss_rows.append(f"   {kind:9s} {stand_name:6s} {density:4g} | FP {r['n_detected'] - round(r['precision'] * r['n_detected']):4d}: "
                                              f"split {r['fp_split']:4d} offset {r['fp_offset']:4d} | FN {r['fn']:4d}: merged "
                                              f"{r['fn_merged']:4d} overtopped {r['fn_overtopped']:4d} | F1 {r['f1']:.3f}, "
-                                             f"{g['f1']:.3f} from the true apexes")
+                                             f"{g['f1']:.3f} from the true apexes | crown IoU from them "
+                                             f"{given_iou[names[0]]:.3f} ({names[0]}), {given_iou['chm']:.3f} (chm)")
                 print(row, flush=True)
     print("   IoU: median 2-D convex-hull crown IoU with the true trees (the measure MixedConifer's agreement "
           "with lidR uses)")
     print(f"   where {names[0]} loses F1 (benchmarks/metrics.py losses: split = a piece of a matched crown, offset ="
           " its crown's top missed by the matching, merged = inside another tree's segment, overtopped ="
           " its apex under a neighbour's crown; 'from the true apexes': the same method given each true tree's"
-          " highest point as its top, so the F1 it lacks is lost by the cut and merges, the rest by the top search)")
+          " highest point as its top, so the F1 it lacks is lost by the cut and merges, the rest by the top search;"
+          " the crown IoU from them is that of its crowns and of chm's grown from the same tops: the crown"
+          " boundaries alone)")
     for line in loss_rows:
         print(line)
     for name, vals in f1s.items():
@@ -380,7 +392,7 @@ def _chm_from_kept_tops(cloud):
 def real_files(out_dir):
     """MixedConifer agreement with lidR; share of small trees and a crown picture on every real file."""
     from sylva.core.io.las import read_las
-    from sylva.core.segment import ChmRegionGrowing, segment_trees
+    from sylva.core.segment import ChmRegionGrowing, NormalizedCut, segment_trees
     from sylva.core.segment.tile import segment_tile
 
     M = _metrics()
@@ -399,6 +411,9 @@ def real_files(out_dir):
         runs.append(("pipeline", lambda: _full(segment_tile(read_las(str(path))), len(cloud))))
         runs.append(("ncut+chm", lambda: _chm_from_kept_tops(cloud)))
         runs.append(("chm 4 m", lambda: segment_trees(cloud, ChmRegionGrowing(top_window_m=4.0))))
+        lidr_tops = _apex_tops(cloud, ref, keep_ids=True)
+        runs.append(("ncut@lidR", lambda: segment_trees(cloud, NormalizedCut(), tops=lidr_tops)))
+        runs.append(("chm@lidR", lambda: segment_trees(cloud, ChmRegionGrowing(), tops=lidr_tops)))
         for name, run in runs:
             t0 = time.perf_counter()
             labels = run()
@@ -414,7 +429,6 @@ def real_files(out_dir):
                  reference_title="lidR treeID")
     else:
         print(f"   skipped: {path} not found")
-    from sylva.core.segment import NormalizedCut
 
     # autzen_trim.laz is suburban: its park and street trees grew in the open (growth "open-grown")
     for name, growth in (("autzen_trim.laz", "forest"), ("autzen_trim.laz", "open-grown"), ("ahn3_delft.xyz", "forest")):
