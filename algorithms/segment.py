@@ -100,7 +100,7 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                           "or a tree-top window you set, turns this off (Sylva, not in the paper)."),
     "top_window_crown": ("tree-top window, share of crown width", "The tree-top window is at least this share of "
                          "the crown width Popescu & Wynne (2004) give a tree that high (CW = 2.51503 + 0.00901 h², "
-                         "metres: 2.4 m at 20 m, 4.2 m at 30 m); 0, or a tree-top window you set, turns this off "
+                         "at most 12 m; metres: 2.4 m at 20 m, 4.2 m at 30 m, 4.8 m above 32.4 m); 0, or a tree-top window you set, turns this off "
                          "(Sylva, not in Hu et al.)."),
     "apex_window_m": ("steep-apex window (m)", "Maxima of this narrow window also count as tree tops when the "
                       "canopy falls away steeply from them (conifer tips overtopped on one side by a taller "

@@ -12,7 +12,8 @@ Prints, for every method side by side:
 
 1. detection precision / recall / F1 and point-level accuracy against the
    synthetic truth of testing/synth (conifers) and sylva/testing/crowns.py
-   (broadleaf and mixed), on open / medium / dense stands scanned at 2, 5, 20
+   (broadleaf, mixed, open-grown parkland, and tall mixed stands of 30-60 m),
+   on open / medium / dense stands scanned at 2, 5, 20
    and 50 pulses/m2 (matching rule in benchmarks/metrics.py: tops
    within 0.5 x the true crown radius, heights within 15 %, one-to-one by a
    Hungarian assignment; a segmented tree's top is its highest point);
@@ -121,7 +122,7 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
 
     M = _metrics()
     print("1. Detection and point accuracy on the extended synthetic suite (100 m x 100 m; conifer: "
-          "testing/synth presets, broadleaf / mixed: sylva/testing/crowns.py), seed", seed, "; ncut and pipeline "
+          "testing/synth presets, broadleaf / mixed / parkland / tall: sylva/testing/crowns.py), seed", seed, "; ncut and pipeline "
           "with the growth preset", repr(growth))
     names = [n for n, _ in _methods()] + ["pipeline"]
     head = f"{'kind':9s} {'stand':6s} {'p/m2':>4s} {'points':>7s} {'trees':>5s} "
@@ -571,8 +572,8 @@ def throughput(sizes):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="throughput at 1 M points only")
-    parser.add_argument("--kinds", default="conifer,broadleaf,mixed,parkland",
-                        help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed, parkland)")
+    parser.add_argument("--kinds", default="conifer,broadleaf,mixed,parkland,tall",
+                        help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed, parkland, tall)")
     parser.add_argument("--stands", default="open,medium,dense",
                         help="comma-separated stands of the accuracy table (open, medium, dense)")
     parser.add_argument("--densities", default="2,5,20,50",

@@ -72,6 +72,14 @@ class FixedWindow:
         return float(self.diameter_m)
 
 
+#: The widest crown (m) of a forest-grown tree that Popescu & Wynne's (2004) crown-width regressions
+#: are used for: they are quadratic in height, fitted on stands of usual heights, and extrapolated
+#: they grow without bound (the combined rule gives 12 m at 32.4 m, 25 m at 50 m, 35 m at 60 m, wider
+#: than any forest crown), so beyond it the crown width stays at this value (Sylva, not in Popescu &
+#: Wynne; measured on the suite's tall stands, ``benchmarks/segmentation.py --kinds tall``).
+MAX_CROWN_WIDTH_M = 12.0
+
+
 @dataclass(frozen=True)
 class VariableWindow:
     """Window diameter ``a + b*h + c*h**2`` metres for a top ``h`` metres high,
@@ -104,19 +112,19 @@ class VariableWindow:
     def max_diameter(self) -> float:
         return float(self.max_diameter_m)
 
-    # Popescu & Wynne (2004): crown width (m) against tree height (m).
+    # Popescu & Wynne (2004): crown width (m) against tree height (m), at most MAX_CROWN_WIDTH_M.
     @classmethod
-    def pines(cls, min_diameter_m: float = 2.0, max_diameter_m: float = 12.0) -> "VariableWindow":
+    def pines(cls, min_diameter_m: float = 2.0, max_diameter_m: float = MAX_CROWN_WIDTH_M) -> "VariableWindow":
         """CW = 3.75105 - 0.17919 h + 0.01241 h^2 (pines)."""
         return cls(3.75105, -0.17919, 0.01241, min_diameter_m, max_diameter_m)
 
     @classmethod
-    def deciduous(cls, min_diameter_m: float = 2.0, max_diameter_m: float = 12.0) -> "VariableWindow":
+    def deciduous(cls, min_diameter_m: float = 2.0, max_diameter_m: float = MAX_CROWN_WIDTH_M) -> "VariableWindow":
         """CW = 3.09632 + 0.00895 h^2 (deciduous)."""
         return cls(3.09632, 0.0, 0.00895, min_diameter_m, max_diameter_m)
 
     @classmethod
-    def combined(cls, min_diameter_m: float = 2.0, max_diameter_m: float = 12.0) -> "VariableWindow":
+    def combined(cls, min_diameter_m: float = 2.0, max_diameter_m: float = MAX_CROWN_WIDTH_M) -> "VariableWindow":
         """CW = 2.51503 + 0.00901 h^2 (pines and deciduous together)."""
         return cls(2.51503, 0.0, 0.00901, min_diameter_m, max_diameter_m)
 

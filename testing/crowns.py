@@ -65,7 +65,10 @@ neighbour), each ``"open"``, ``"medium"`` or ``"dense"`` as ``synth``'s presets
 (120 / 250 / 400 stems per ha, crowns overlapping 0 / 0.5 / 1);
 ``"parkland"`` (open-grown broadleaves, the same three structures with
 :data:`OPEN_GROWN_SCALE`² fewer stems, so that the canopy covers as much
-ground: 19 / 40 / 64 stems per ha, lone trees to touching groups).
+ground: 19 / 40 / 64 stems per ha, lone trees to touching groups);
+``"tall"`` (the mixed stand with trees :data:`TALL_HEIGHT_M` high instead of
+8-30 m: temperate rainforest conifers, tall eucalypts, old beech and oak
+stands, whose heights the other stands never reach).
 """
 from __future__ import annotations
 
@@ -81,7 +84,7 @@ from ..core.errors import InputError
 
 __all__ = ["KINDS", "STRUCTURES", "FORMS", "suite_stand", "suite_preset", "crown_forms"]
 
-KINDS = ("broadleaf", "mixed", "parkland")
+KINDS = ("broadleaf", "mixed", "parkland", "tall")
 STRUCTURES = ("open", "medium", "dense")
 FORMS = ("round", "flat", "cylinder")
 
@@ -102,6 +105,10 @@ _GAP_HALF_ANGLE = math.radians(35.0)
 #: Crown radius of an open-grown broadleaf / a forest-grown one of the same height (2.5: a crown
 #: 0.9 x as wide as the tree is high at 15 m, 0.8 x at 30 m, as autzen_trim.laz's park trees).
 OPEN_GROWN_SCALE = 2.5
+
+#: Heights (m) of the trees of the "tall" stands, and of the others.
+TALL_HEIGHT_M = (30.0, 60.0)
+HEIGHT_M = (8.0, 30.0)
 
 
 def _profile(u: np.ndarray, form: str) -> np.ndarray:
@@ -181,16 +188,18 @@ def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0
     if structure not in synth._PRESETS:
         raise InputError(f"unknown stand structure {structure!r}; choose one of {', '.join(STRUCTURES)}")
     stems, overlap = synth._PRESETS[structure]
-    scale = 1.0
+    scale, heights = 1.0, HEIGHT_M
     if kind == "broadleaf":
         species, weights, suppressed = ("broadleaf",), (1.0,), 0.0
     elif kind == "parkland":
         species, weights, suppressed, scale = ("broadleaf",), (1.0,), 0.0, OPEN_GROWN_SCALE
         stems /= scale ** 2
-    else:
+    else:                                   # mixed, and tall: the mixed stand grown taller
         species, weights, suppressed = ("conifer", "broadleaf"), (0.4, 0.6), 0.15
+        if kind == "tall":
+            heights = TALL_HEIGHT_M
     spec = synth.StandSpec(width_m=width_m, depth_m=width_m, stems_per_ha=stems, species=species,
-                           species_weights=weights, height_m=(8.0, 30.0), crown_overlap=overlap,
+                           species_weights=weights, height_m=heights, crown_overlap=overlap,
                            seed=seed, crown_scale=scale)
     base = synth.make_stand(spec)
     rng = np.random.default_rng(10_000 + seed)

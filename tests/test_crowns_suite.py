@@ -64,3 +64,15 @@ def test_parkland_crowns_are_open_grown_and_cover_as_much_ground():
     assert set(crowns.crown_forms(crowns.suite_stand("parkland", "open", seed=1)).values()) <= set(crowns.FORMS)
     with pytest.raises(InputError, match="crown_scale"):
         synth.StandSpec(crown_scale=0.0)
+
+
+def test_tall_stands_are_the_mixed_stand_grown_taller():
+    """"tall": the mixed stand's trees at TALL_HEIGHT_M (30-60 m) instead of 8-30 m."""
+    tall = crowns.suite_stand("tall", "open", seed=1)
+    mixed = crowns.suite_stand("mixed", "open", seed=1)
+    h_tall = np.array([t.height for t in tall.trees])
+    h_mixed = np.array([t.height for t in mixed.trees])
+    dominant = h_tall[[crowns.crown_forms(tall)[t.tree_id] != "suppressed" for t in tall.trees]]
+    assert dominant.min() > 0.95 * crowns.TALL_HEIGHT_M[0] and dominant.max() < 1.05 * crowns.TALL_HEIGHT_M[1]
+    assert np.median(h_tall) > 1.8 * np.median(h_mixed)
+    assert set(crowns.crown_forms(tall).values()) >= {"conifer", "suppressed"}

@@ -322,6 +322,42 @@ def test_a_crown_rule_gives_a_truer_count_and_a_better_f1(kind, structure, densi
     assert on["f1"] > off["f1"]
 
 
+def test_the_allometric_crown_width_is_bounded_for_tall_trees():
+    """Popescu & Wynne's quadratic is used up to MAX_CROWN_WIDTH_M (12 m, reached at 32.4 m), not
+    extrapolated (35 m at 60 m); open-grown crowns scale the bound too."""
+    from sylva.core.segment.ncut.cleanup import crown_radius_m
+    from sylva.core.tops import MAX_CROWN_WIDTH_M, VariableWindow
+
+    h = np.array([5.0, 20.0, 32.0, 32.5, 45.0, 60.0])
+    cw = 2.51503 + 0.00901 * h * h
+    assert np.allclose(2.0 * crown_radius_m(h), np.minimum(cw, MAX_CROWN_WIDTH_M))
+    assert 2.0 * crown_radius_m(32.0) == pytest.approx(cw[2]) and crown_radius_m(60.0) == 6.0
+    assert crown_radius_m(60.0, 2.5) == pytest.approx(15.0)
+    assert VariableWindow.combined().diameter(np.array([60.0]))[0] == MAX_CROWN_WIDTH_M
+
+
+def test_tall_stands_are_not_merged_by_an_extrapolated_crown_width(monkeypatch):
+    """On a tall stand (30-60 m, seed 2, 60 m, which the benchmarks do not use) the bounded
+    allometry finds more of the trees and a much better F1 than the unbounded quadratic, whose
+    top windows and merge reaches (a 60 m tree's crown 35 m wide) join neighbours."""
+    from sylva.core.segment.ncut import cleanup
+    from sylva.testing import crowns, synth
+    from sylva.core.terrain import normalize
+
+    stand, spec = crowns.suite_preset("tall", "medium", 10, seed=2, width_m=60.0)
+    scan = synth.simulate_scan(stand, spec)
+    cloud = normalize(scan.cloud)
+
+    def run():
+        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                                   scan.truth_tree, stand.trees)
+    bounded = run()
+    monkeypatch.setattr(cleanup, "MAX_CROWN_WIDTH_M", float("inf"))
+    unbounded = run()
+    assert unbounded["n_detected"] < bounded["n_detected"] <= bounded["n_true"]
+    assert bounded["f1"] > unbounded["f1"] + 0.1
+
+
 def test_unjoined_plateaus_are_level_rounded_tops_near_each_other_in_an_open_canopy():
     from sylva.core.segment.ncut.cut import CLOSED_COVER, unjoined_plateaus
 

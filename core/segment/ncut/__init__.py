@@ -99,7 +99,7 @@ Steps
    of touching regions (settled or not) is one tree when the lower top lies
    within ``merge_reach`` x the crown radius the higher top's height implies
    (half the crown width of Popescu & Wynne 2004, CW = 2.51503 + 0.00901 h²,
-   :func:`crown_radius_m`) and rises less than ``merge_prominence`` x its
+   at most 12 m, :func:`crown_radius_m`) and rises less than ``merge_prominence`` x its
    height above their saddle (the prominence of the EBImage/lidR watershed's
    ``tol``, relative to height).  Measured on 2,530 pairs of the extended
    suite (``sylva/testing/crowns.py``) and testing/synth's dense conifers: pairs

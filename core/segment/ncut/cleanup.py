@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 from ...jit import helper, njit
 from ...kernels.buckets import bucket_by_cell
 from ...kernels.unionfind import uf_union
+from ...tops import MAX_CROWN_WIDTH_M
 from .graph import VoxelGraph
 
 
@@ -292,10 +293,12 @@ def _crown_moments(x, y, h, labels, top_h, share):
 def crown_radius_m(height_m, scale: float = 1.0):
     """Expected crown radius (m) of a tree ``height_m`` metres high: half the crown width of
     Popescu & Wynne (2004), CW = 2.51503 + 0.00901 h² (pines and deciduous trees together;
-    :meth:`sylva.core.tops.VariableWindow.combined`), times ``scale`` (1: trees grown in a stand;
+    :meth:`sylva.core.tops.VariableWindow.combined`), at most
+    :data:`~sylva.core.tops.MAX_CROWN_WIDTH_M` (12 m, reached at 32.4 m: the quadratic is not
+    extrapolated to tall trees), times ``scale`` (1: trees grown in a stand;
     :attr:`NormalizedCut.crown_scale <sylva.core.segment.ncut.NormalizedCut.crown_scale>`)."""
     h = np.asarray(height_m, dtype=np.float64)
-    return 0.5 * scale * (2.51503 + 0.00901 * h * h)
+    return 0.5 * scale * np.minimum(2.51503 + 0.00901 * h * h, MAX_CROWN_WIDTH_M)
 
 
 @helper
