@@ -223,13 +223,23 @@ def _deferred(signum) -> bool:
     return _SIGNALLED["computing"] and not again
 
 
+def _at_once(signum, frame) -> bool:
+    """Whether the signal is raised now (see :func:`_deferred`).  Not while the first one lands in
+    the import system's own frames either: raised there, the exception surfaced as a traceback
+    printed from importlib's module-lock clean-up (``_lock_unlock_module``) before the one line;
+    the run then stops at the cancel check that opens the computation."""
+    again = _SIGNALLED["signal"] is not None
+    importing = frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
+    return not _deferred(signum) and (again or not importing)
+
+
 def _on_signal(signum, frame):
-    if not _deferred(signum):
+    if _at_once(signum, frame):
         raise _Terminated(signum)
 
 
 def _on_interrupt(signum, frame):
-    if not _deferred(signum):
+    if _at_once(signum, frame):
         raise KeyboardInterrupt
 
 

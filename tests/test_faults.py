@@ -505,6 +505,28 @@ def _loaded(proc, library: str) -> bool:
         return True
 
 
+def test_a_first_signal_inside_the_import_system_waits_for_the_cancel_check(monkeypatch):
+    """A Ctrl-C landing in importlib's own frames is not raised there (its module-lock clean-up printed
+    the traceback before Sylva's one line); it is recorded, a second one is raised at once, and one
+    landing in Sylva's own code before the computation is raised at once too."""
+    import types
+
+    from sylva import cli
+
+    def frame(filename):
+        return types.SimpleNamespace(f_code=types.SimpleNamespace(co_filename=filename))
+
+    monkeypatch.setitem(cli._SIGNALLED, "signal", None)
+    monkeypatch.setitem(cli._SIGNALLED, "computing", False)
+    cli._on_interrupt(signal.SIGINT, frame("<frozen importlib._bootstrap>"))     # recorded, not raised
+    assert cli._SIGNALLED["signal"] == signal.SIGINT
+    with pytest.raises(KeyboardInterrupt):
+        cli._on_interrupt(signal.SIGINT, frame("<frozen importlib._bootstrap>"))
+    monkeypatch.setitem(cli._SIGNALLED, "signal", None)
+    with pytest.raises(KeyboardInterrupt):
+        cli._on_interrupt(signal.SIGINT, frame(cli.__file__))
+
+
 def test_ctrl_c_during_start_up_is_one_line(sample_laz, tmp_path):
     """Ctrl-C while Sylva imports numpy, pyproj, laspy (and numba compiles): one line, exit 130.
 
