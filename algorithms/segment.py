@@ -292,7 +292,7 @@ SEGMENT_TREES = Algorithm(
         Param("OUTPUT", FILE_OUT, "Segmented point cloud", file_filter=LAS_FILTER, optional=True,
               help="The tile with every source dimension and an int32 treeID (0 = no tree), as lidR writes."),
         Param("TREE_TOPS", VECTOR_OUT, "Tree tops", geometry=POINT, style="tree_tops.qml",
-              help="PointZ at each tree's highest point: tree_id, height."),
+              help="PointZ at each tree's apex (its highest point in elevation): tree_id, height."),
         Param("CROWNS", VECTOR_OUT, "Crowns", geometry=POLYGON, style="crowns.qml",
               help="Crown outlines: tree_id, height, top_z, crown_area, crown_diameter."),
         Param("CROWN_POINTS", VECTOR_OUT, "Crown points", geometry=POINT, optional=True, style="crown_points.qml",

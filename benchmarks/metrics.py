@@ -45,17 +45,13 @@ class Detection:
 
 
 def segment_tops(xyz: np.ndarray, height: np.ndarray, labels: np.ndarray):
-    """(ids, x, y, height) of the highest point of each segmented tree (label > 0)."""
+    """(ids, x, y, height) of the apex of each segmented tree (label > 0): its highest point in
+    elevation (sylva.core.tops.apex_points, what Sylva reports as the tree's top), with that point's
+    height above ground."""
+    from sylva.core.tops import apex_points
+
+    top = apex_points(xyz, labels)
     labels = np.asarray(labels)
-    sel = np.flatnonzero(labels > 0)
-    if len(sel) == 0:
-        e = np.zeros(0)
-        return np.zeros(0, dtype=np.int64), e, e, e
-    order = sel[np.lexsort((-height[sel], labels[sel]))]
-    lab = labels[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = lab[1:] != lab[:-1]
-    top = order[first]
     return labels[top].astype(np.int64), xyz[top, 0], xyz[top, 1], height[top]
 
 
@@ -176,12 +172,11 @@ def losses(xyz, height, labels, truth_tree, trees, pairs, overtop_radius_m: floa
     holder = maj_t[un_t]
     fn_merged = int(np.sum((holder > 0) & (maj_d[holder] != un_t)))
     # overtopped: a higher point of another tree within the radius of the tree's own apex
-    tree_pts = np.flatnonzero(truth_tree > 0)
-    order = tree_pts[np.lexsort((-height[tree_pts], truth_tree[tree_pts]))]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = truth_tree[order][1:] != truth_tree[order][:-1]
+    from sylva.core.tops import apex_points
+
+    first = apex_points(xyz, truth_tree)
     apex = np.full(size_t, -1, dtype=np.int64)
-    apex[truth_tree[order[first]]] = order[first]
+    apex[truth_tree[first]] = first
     fn_over = 0
     cand = [t for t in un_t if apex[t] >= 0]
     if cand:

@@ -371,13 +371,12 @@ def pair_table(seed=0):
 
 
 def _apex_tops(cloud, labels, keep_ids=False):
-    """TreeTops at the highest point of every labelled tree (ids 1..n by height, or the labels)."""
-    from sylva.core.tops import TreeTops
+    """TreeTops at the apex of every labelled tree (its highest point in elevation; ids 1..n by
+    height, or the labels)."""
+    from sylva.core.tops import TreeTops, apex_points
 
     height = cloud.attrs["height"]
-    sel = np.flatnonzero(labels > 0)
-    order = sel[np.lexsort((-height[sel], labels[sel]))]
-    first = order[np.r_[True, labels[order][1:] != labels[order][:-1]]]
+    first = apex_points(cloud.xyz, labels)
     first = first[np.argsort(-height[first], kind="stable")]
     ids = labels[first].astype(np.int64) if keep_ids else np.arange(1, len(first) + 1, dtype=np.int64)
     return TreeTops(cloud.xyz[first], height[first], ids, cloud.crs)

@@ -3,8 +3,10 @@
 Everything is computed per tree from its points (label = treeID > 0) in one
 vectorised pass over points sorted by (treeID, height):
 
-* **top**: the tree's highest point; ``x``, ``y`` are its horizontal position
-  (CRS units) and ``height`` its height above ground (m); ``ground_z`` is the
+* **top**: the tree's apex, its highest point in elevation
+  (:func:`~sylva.core.tops.apex_points`: on a slope the highest point above
+  ground lies downhill of it); ``x``, ``y`` are its horizontal position (CRS
+  units) and ``height`` its height above ground (m); ``ground_z`` is the
   terrain elevation under the top (CRS vertical units) = top z - height.
 * **crown base** (``crown_base_height``, m above ground): the crown is the
   top part of the tree's vertical point profile that has no empty height
@@ -34,7 +36,7 @@ import numpy as np
 import shapely
 
 from .cloud import PointCloud
-from .tops import MIN_TREE_POINTS
+from .tops import MIN_TREE_POINTS, apex_points
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,7 @@ def tree_metrics(cloud: PointCloud, labels: np.ndarray, hull: str = "convex", co
         return TreeMetrics(np.zeros(0, np.int64), empty, empty, empty, empty, empty, empty, empty, empty,
                            np.zeros(0, np.int64), np.zeros(0, object), np.zeros(len(cloud), bool))
     starts, sizes = _group_bounds(lab)
-    top_idx = order[starts + sizes - 1]
+    top_idx = apex_points(cloud.xyz, labels)          # one per tree, in the order of lab[starts]
     tree_id = lab[starts].astype(np.int64)
     base = crown_base_heights(lab, h, starts, sizes, crown_base)
     tree_of = np.repeat(np.arange(len(starts)), sizes)

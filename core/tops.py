@@ -178,6 +178,24 @@ class TreeTops:
         return len(self.height)
 
 
+def apex_points(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Index of each tree's apex, one per label > 0 in increasing label order: its highest point in
+    elevation (``xyz[:, 2]``; ties: lowest x, then y, then the first point, not the point order).
+
+    Not the highest point above ground: on a slope the ground falls away under the downhill side
+    of a crown, whose points stand higher above it than the apex does, so the highest point of the
+    canopy height model lies downhill of the apex and above the tree's height (the downhill
+    displacement of CHM tree tops measured by Khosravipour, Skidmore, Wang, Isenburg & Khoshelham
+    2015, "Effect of slope on treetop detection using a LiDAR Canopy Height Model", ISPRS J.
+    Photogramm. Remote Sens. 104:44-52).  On level ground the two are the same point."""
+    labels = np.asarray(labels)
+    sel = np.flatnonzero(labels > 0)
+    order = sel[np.lexsort((sel, xyz[sel, 1], xyz[sel, 0], -xyz[sel, 2], labels[sel]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = labels[order][1:] != labels[order][:-1]
+    return order[first]
+
+
 def _ordered(xyz: np.ndarray, height: np.ndarray, crs) -> TreeTops:
     order = np.lexsort((xyz[:, 1], xyz[:, 0], -height))
     xyz = np.asarray(xyz[order], dtype=np.float64).reshape(-1, 3)
@@ -505,4 +523,5 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
     return tops
 
 
-__all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "find_tree_tops", "steep_tops"]
+__all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "apex_points", "find_tree_tops",
+           "steep_tops"]

@@ -15,8 +15,9 @@ through either.  Steps:
    normalised cloud (stems for terrestrial plot scans); the method segments the cloud and finds its own tree tops (its top search
    is a field of the method, e.g. :class:`NormalizedCut`'s window, window
    points, apex rule and minimum height);
-4. the tops reported are each tree's highest point (a point of the cloud, so
-   the pipeline can tell which tile's file holds it).
+4. the tops reported are each tree's apex, its highest point in elevation
+   (:func:`sylva.core.tops.apex_points`; a point of the cloud, so the pipeline
+   can tell which tile's file holds it).
 """
 from __future__ import annotations
 
@@ -46,16 +47,13 @@ class SegmentedTile:
 
 
 def tree_tops_of(cloud: PointCloud, labels: np.ndarray):
-    """:class:`TreeTops` at the highest point of every label > 0 (ties: lowest x, then y, then the
-    first point: not the point order, which depends on the tiling)."""
-    from ..tops import TreeTops
+    """:class:`TreeTops` at the apex of every label > 0 (:func:`~sylva.core.tops.apex_points`: its
+    highest point in elevation; ties: lowest x, then y, then the first point, not the point order,
+    which depends on the tiling), with that point's height above ground."""
+    from ..tops import TreeTops, apex_points
 
     height = np.asarray(cloud.attrs["height"], dtype=np.float64)
-    sel = np.flatnonzero(labels > 0)
-    order = sel[np.lexsort((sel, cloud.xyz[sel, 1], cloud.xyz[sel, 0], -height[sel], labels[sel]))]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = labels[order][1:] != labels[order][:-1]
-    top = order[first]
+    top = apex_points(cloud.xyz, labels)
     return TreeTops(cloud.xyz[top], height[top], labels[top].astype(np.int64), cloud.crs)
 
 
