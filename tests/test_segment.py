@@ -373,19 +373,9 @@ def test_tall_stands_are_not_merged_by_an_extrapolated_crown_width(monkeypatch):
     allometry finds more of the trees and a much better F1 than the unbounded quadratic, whose
     top windows and merge reaches (a 60 m tree's crown 35 m wide) join neighbours."""
     from sylva.core.segment.ncut import cleanup
-    from sylva.testing import crowns, synth
-    from sylva.core.terrain import normalize
 
-    stand, spec = crowns.suite_preset("tall", "medium", 10, seed=2, width_m=60.0)
-    scan = synth.simulate_scan(stand, spec)
-    cloud = normalize(scan.cloud)
-
-    def run():
-        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                   scan.truth_tree, stand.trees)
-    bounded = run()
-    monkeypatch.setattr(cleanup, "MAX_CROWN_WIDTH_M", float("inf"))
-    unbounded = run()
+    bounded, unbounded = _with_and_without(monkeypatch, cleanup, "MAX_CROWN_WIDTH_M", float("inf"), "tall",
+                                           "medium", 10)
     assert unbounded["n_detected"] < bounded["n_detected"] <= bounded["n_true"]
     assert bounded["f1"] > unbounded["f1"] + 0.1
 
