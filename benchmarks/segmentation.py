@@ -7,6 +7,8 @@
     python benchmarks/segmentation.py --variants '[{}, {"top_window_points": 50}]'
                                                  # what changing a default trades (table 4 only)
     python benchmarks/segmentation.py --pairs    # what tells one tree's two tops from two trees (5 only)
+    python benchmarks/segmentation.py --slope 30 --sizes 0 --no-real
+                                                 # the table on ground sloping 30 degrees
 
 Prints, for every method side by side:
 
@@ -86,17 +88,17 @@ def _methods(growth="forest"):
     return [("ncut", NormalizedCut(growth=growth)), ("chm", ChmRegionGrowing())]
 
 
-def _suite_scan(kind, structure, density, seed=0):
-    """(stand, scan) of the extended suite: kind conifer (testing/synth presets), broadleaf or mixed
-    (sylva/testing/crowns.py)."""
+def _suite_scan(kind, structure, density, seed=0, slope_deg=0.0):
+    """(stand, scan) of the extended suite: kind conifer (testing/synth presets), broadleaf, mixed,
+    parkland or tall (sylva/testing/crowns.py), on ground sloping ``slope_deg`` degrees."""
     from sylva.testing import synth
     from sylva.testing import crowns
 
     if kind == "conifer":
         stand_spec, scan_spec = synth.preset(structure, pulse_density=density, seed=seed)
-        stand = synth.make_stand(stand_spec)
+        stand = synth.make_stand(dataclasses.replace(stand_spec, slope_deg=slope_deg))
     else:
-        stand, scan_spec = crowns.suite_preset(kind, structure, density, seed=seed)
+        stand, scan_spec = crowns.suite_preset(kind, structure, density, seed=seed, slope_deg=slope_deg)
     return stand, synth.simulate_scan(stand, scan_spec)
 
 
@@ -116,14 +118,14 @@ def _pipeline_labels(scan, tmp, growth="forest"):
 
 
 def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "medium", "dense"),
-                   densities=(2, 5, 20, 50), seed=0, growth="forest"):
+                   densities=(2, 5, 20, 50), seed=0, growth="forest", slope_deg=0.0):
     from sylva.core.segment import ChmRegionGrowing, segment_trees
     from sylva.core.terrain import normalize
 
     M = _metrics()
     print("1. Detection and point accuracy on the extended synthetic suite (100 m x 100 m; conifer: "
           "testing/synth presets, broadleaf / mixed / parkland / tall: sylva/testing/crowns.py), seed", seed, "; ncut and pipeline "
-          "with the growth preset", repr(growth))
+          "with the growth preset", repr(growth), f"; ground sloping {slope_deg:g} degrees" if slope_deg else "")
     names = [n for n, _ in _methods()] + ["pipeline"]
     head = f"{'kind':9s} {'stand':6s} {'p/m2':>4s} {'points':>7s} {'trees':>5s} "
     for n in names:
@@ -134,7 +136,7 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
     for kind in kinds:
         for stand_name in stands:
             for density in densities:
-                stand, scan = _suite_scan(kind, stand_name, density, seed)
+                stand, scan = _suite_scan(kind, stand_name, density, seed, slope_deg)
                 cloud = normalize(scan.cloud)
                 row = f"{kind:9s} {stand_name:6s} {density:4g} {len(cloud):7d} {len(stand.trees):5d} "
                 runs = [(n, lambda m=m: segment_trees(cloud, m)) for n, m in _methods(growth)]
@@ -573,6 +575,8 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="throughput at 1 M points only")
     parser.add_argument("--kinds", default="conifer,broadleaf,mixed,parkland,tall",
                         help="comma-separated crown kinds of the accuracy table (conifer, broadleaf, mixed, parkland, tall)")
+    parser.add_argument("--slope", type=float, default=0.0,
+                        help="slope of the accuracy table's ground in degrees (0: level, the default)")
     parser.add_argument("--stands", default="open,medium,dense",
                         help="comma-separated stands of the accuracy table (open, medium, dense)")
     parser.add_argument("--densities", default="2,5,20,50",
@@ -621,7 +625,7 @@ def main(argv=None):
         densities = tuple(float(d) if "." in d else int(d) for d in args.densities.split(",") if d)
         kinds = tuple(k for k in args.kinds.split(",") if k)
         if kinds and stands and densities:
-            accuracy_table(kinds, stands, densities, args.seed, args.growth)
+            accuracy_table(kinds, stands, densities, args.seed, args.growth, args.slope)
         if not args.no_real:
             real_files(args.out)
             shipped_sample()

@@ -181,8 +181,10 @@ def _stem_row(ti, t: synth.TrueTree, tan_slope, stem_top, x_top=None, y_top=None
     return (ti, _CYLINDER, t.x, t.y, z_foot, stem_top, r_stem, 0.0, lx, ly)
 
 
-def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0) -> synth.Stand:
-    """A stand of the extended suite: ``kind`` in :data:`KINDS`, ``structure`` in :data:`STRUCTURES`."""
+def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0,
+                slope_deg: float = 0.0) -> synth.Stand:
+    """A stand of the extended suite: ``kind`` in :data:`KINDS`, ``structure`` in :data:`STRUCTURES`,
+    on ground sloping ``slope_deg`` degrees (0: level, with synth's gentle relief)."""
     if kind not in KINDS:
         raise InputError(f"unknown suite stand kind {kind!r}; choose one of {', '.join(KINDS)}")
     if structure not in synth._PRESETS:
@@ -199,7 +201,7 @@ def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0
         if kind == "tall":
             heights = TALL_HEIGHT_M
     spec = synth.StandSpec(width_m=width_m, depth_m=width_m, stems_per_ha=stems, species=species,
-                           species_weights=weights, height_m=heights, crown_overlap=overlap,
+                           species_weights=weights, height_m=heights, crown_overlap=overlap, slope_deg=slope_deg,
                            seed=seed, crown_scale=scale)
     base = synth.make_stand(spec)
     rng = np.random.default_rng(10_000 + seed)
@@ -288,7 +290,7 @@ def suite_stand(kind: str, structure: str, seed: int = 0, width_m: float = 100.0
 
 
 def suite_preset(kind: str, structure: str, pulse_density: float, seed: int = 0,
-                 width_m: float = 100.0) -> Tuple[synth.Stand, synth.ScanSpec]:
+                 width_m: float = 100.0, slope_deg: float = 0.0) -> Tuple[synth.Stand, synth.ScanSpec]:
     """(stand, scan spec) of the extended suite, scanned at ``pulse_density`` pulses/m2."""
-    return (suite_stand(kind, structure, seed, width_m),
+    return (suite_stand(kind, structure, seed, width_m, slope_deg),
             synth.ScanSpec(pulse_density=pulse_density, seed=seed))

@@ -76,3 +76,15 @@ def test_tall_stands_are_the_mixed_stand_grown_taller():
     assert dominant.min() > 0.95 * crowns.TALL_HEIGHT_M[0] and dominant.max() < 1.05 * crowns.TALL_HEIGHT_M[1]
     assert np.median(h_tall) > 1.8 * np.median(h_mixed)
     assert set(crowns.crown_forms(tall).values()) >= {"conifer", "suppressed"}
+
+
+def test_a_suite_stand_can_stand_on_a_slope():
+    """slope_deg tilts the suite's ground (steepest descent eastwards, synth's default azimuth)
+    under the same trees: 20 degrees drop tan(20 deg) x 30 m, give or take synth's gentle relief."""
+    level = crowns.suite_stand("broadleaf", "open", seed=1, width_m=40.0)
+    steep = crowns.suite_stand("broadleaf", "open", seed=1, width_m=40.0, slope_deg=20.0)
+    x0, y0 = steep.spec.origin
+    drop = float(steep.ground_z(x0 + 5.0, y0 + 20.0) - steep.ground_z(x0 + 35.0, y0 + 20.0))
+    flat = float(level.ground_z(x0 + 5.0, y0 + 20.0) - level.ground_z(x0 + 35.0, y0 + 20.0))
+    assert abs(drop - np.tan(np.radians(20.0)) * 30.0) < 1.0 and abs(flat) < 1.0
+    assert np.allclose([t.height for t in steep.trees], [t.height for t in level.trees])
