@@ -9,7 +9,8 @@ their tops are within ``0.5 x`` the true crown radius horizontally and their
 heights differ by less than 15 % of the true height; matches are one-to-one,
 chosen by a Hungarian assignment (:func:`scipy.optimize.linear_sum_assignment`)
 on horizontal distance with infeasible pairs excluded.  A segmented tree's
-top is its highest point.
+top is its apex, its highest point in elevation (sylva.core.tops.apex_points),
+with that point's height above ground.
 """
 
 from dataclasses import dataclass
@@ -149,7 +150,7 @@ def losses(xyz, height, labels, truth_tree, trees, pairs, overtop_radius_m: floa
       the wrong height: the crown is there, the top is not where the matching looks);
     * ``fn_merged``: most of its points lie in a detected tree whose majority is another true
       tree (under-segmentation);
-    * ``fn_overtopped``: its apex (highest point) has a point of another tree higher than it
+    * ``fn_overtopped``: its apex (highest point in elevation) has a point of another tree higher than it
       within ``overtop_radius_m`` horizontally: it is under a neighbour's crown and no canopy-
       surface top can find it (counted among fn_merged / the rest as well).
     Sylva benchmark measure, not from a paper."""

@@ -18,13 +18,14 @@ Prints, for every method side by side:
    on open / medium / dense stands scanned at 2, 5, 20
    and 50 pulses/m2 (matching rule in benchmarks/metrics.py: tops
    within 0.5 x the true crown radius, heights within 15 %, one-to-one by a
-   Hungarian assignment; a segmented tree's top is its highest point);
+   Hungarian assignment; a segmented tree's top is its apex, its highest
+   point in elevation);
    each method finds its own tree tops with its default window; then, for
    the default method, where the F1 is lost (metrics.losses: false positives
    that are pieces of a matched crown or crowns whose top the matching
    misses; misses inside another tree's segment, and misses whose apex is
    under a neighbour's crown), and the F1 and median crown IoU it reaches
-   given each true tree's highest point as its top, beside the IoU of
+   given each true tree's apex as its top, beside the IoU of
    ChmRegionGrowing's crowns from the same tops (the crown boundaries alone);
    each method's median 2-D crown IoU with the true trees (the measure of 2.);
 2. on ../shared/data/als/MixedConifer.laz (heights already normalised): the
@@ -35,7 +36,7 @@ Prints, for every method side by side:
    part of the disagreement is crown boundaries, which is tops), a row
    'chm 4 m' is ChmRegionGrowing with a 4 m top window (what lidR's labels
    look like: a CHM method); rows 'ncut@lidR' and 'chm@lidR' give both
-   methods lidR's own tops (each lidR tree's highest point), so their IoU
+   methods lidR's own tops (each lidR tree's apex), so their IoU
    measures the crown boundaries alone (how alike the two partitions are,
    not the tops);
    and the same detection scores as in 1. on the plugin's shipped sample
@@ -173,7 +174,7 @@ def accuracy_table(kinds=("conifer", "broadleaf", "mixed"), stands=("open", "med
     print(f"   where {names[0]} loses F1 (benchmarks/metrics.py losses: split = a piece of a matched crown, offset ="
           " its crown's top missed by the matching, merged = inside another tree's segment, overtopped ="
           " its apex under a neighbour's crown; 'from the true apexes': the same method given each true tree's"
-          " highest point as its top, so the F1 it lacks is lost by the cut and merges, the rest by the top search;"
+          " apex (its highest point in elevation) as its top, so the F1 it lacks is lost by the cut and merges, the rest by the top search;"
           " the crown IoU from them is that of its crowns and of chm's grown from the same tops: the crown"
           " boundaries alone)")
     for line in loss_rows:
@@ -385,7 +386,7 @@ def _apex_tops(cloud, labels, keep_ids=False):
 
 
 def _chm_from_kept_tops(cloud):
-    """Dalponte's CHM region growing from the tops of NormalizedCut's trees (each tree's highest point)."""
+    """Dalponte's CHM region growing from the tops of NormalizedCut's trees (each tree's apex)."""
     from sylva.core.segment import ChmRegionGrowing, NormalizedCut, segment_trees
 
     return segment_trees(cloud, ChmRegionGrowing(), tops=_apex_tops(cloud, segment_trees(cloud, NormalizedCut())))

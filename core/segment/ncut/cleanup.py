@@ -26,7 +26,9 @@ TOP_TOLERANCE_M = 0.02
 
 
 def label_tops(xy, height, labels):
-    """(ids, top xy, top height) of every label > 0: its highest point (ties: lowest x, then y,
+    """(ids, top xy, top height) of every label > 0: its highest point above ground, which the merge
+    rules were measured on (the top Sylva reports is the apex in elevation,
+    :func:`sylva.core.tops.apex_points`; the same point on level ground; ties: lowest x, then y,
     then the first point; never the point order alone, which depends on the tiling).  One pass
     (:func:`_label_maxima`), not a sort of every labelled point."""
     top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64),
