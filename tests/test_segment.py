@@ -466,6 +466,89 @@ def test_a_level_top_that_rises_nowhere_above_the_crown_it_touches_joins_it():
     assert np.array_equal(out, labels)
 
 
+def _on_a_slope(domes, degrees=30.0):
+    """(xy, elevation, height above ground, labels) of crowns (x, y, elevation) standing on ground that
+    falls towards +x, 0 m at x = 0."""
+    xy = np.column_stack([np.concatenate([d[0] for d in domes]), np.concatenate([d[1] for d in domes])])
+    elev = np.concatenate([d[2] for d in domes])
+    labels = np.concatenate([np.full(len(d[0]), i + 1) for i, d in enumerate(domes)])
+    return xy, elev, elev + np.tan(np.radians(degrees)) * xy[:, 0], labels
+
+
+def test_on_a_slope_a_round_crown_is_judged_by_its_apex_not_its_highest_point_above_ground():
+    """On a 30 degree slope the highest point above ground of a broad round crown lies 3 m downhill
+    of its apex, off the crown's centre: judged by heights above ground, merge_off_centre takes the
+    crown for a piece of its uphill neighbour; judged from its apex (elev), it is a tree."""
+    from sylva.core.segment.ncut.cleanup import merge_off_centre, tree_relative
+
+    g = np.arange(-8.0, 8.01, 0.25)
+    gx, gy = (a.ravel() for a in np.meshgrid(g, g))
+    inside = np.hypot(gx, gy) <= 5.0
+    slope = np.tan(np.radians(30.0))
+
+    def dome(cx):            # a round crown 20 m high, its apex above its stem at x = cx
+        r2 = gx[inside] ** 2 + gy[inside] ** 2
+        return gx[inside] + cx, gy[inside], 20.0 - 0.1 * r2 - slope * cx
+
+    xy, elev, height, labels = _on_a_slope([dome(0.0), dome(-6.0)])
+    assert xy[labels == 1][np.argmax(height[labels == 1]), 0] == pytest.approx(3.0)
+    relative, ground = tree_relative(xy, elev, height, labels)
+    assert relative.max() == pytest.approx(20.0) and ground[1:] == pytest.approx([0.0, 6.0 * slope])
+    steep = np.array([False, False, True])          # the uphill tree is not itself a candidate
+    wide = (-50.0, -50.0, 50.0, 50.0)
+    assert np.all(merge_off_centre(xy, height, labels, steep, wide) == 2)
+    assert np.array_equal(merge_off_centre(xy, height, labels, steep, wide, elev=elev), labels)
+
+
+def test_on_a_slope_two_leaders_of_one_crown_stand_at_one_elevation():
+    """merge_plateaus with elev: two leaders of one flat crown 3.8 m apart down a 30 degree slope stand at
+    one elevation but differ by 2.2 m in height above the ground (more than the 5 % plateau): they are
+    one crown; two trees of one height there (their tops 2.2 m apart in elevation) stay two."""
+    from sylva.core.segment.ncut.cleanup import merge_plateaus
+
+    g = np.arange(-6.0, 6.01, 0.25)
+    gx, gy = (a.ravel() for a in np.meshgrid(g, g))
+    r = np.hypot(gx, gy)
+    inside = r <= 2.0
+
+    def dome(cx, top):
+        return gx[inside] + cx, gy[inside], top - 0.6 * (r[inside] / 2.0) ** 2
+
+    drop = 3.8 * np.tan(np.radians(30.0))
+    edge = (-60.0, -60.0, 60.0, 60.0)
+    for second, one in ((dome(3.8, 19.9), True), (dome(3.8, 19.9 - drop), False)):
+        xy, elev, height, labels = _on_a_slope([dome(0.0, 20.0), second])
+        out = merge_plateaus(xy, height, labels, edge, 0.05, 0.075, 1.3, 1.0, elev=elev)
+        assert np.all(out == 1) if one else np.array_equal(out, labels)
+        assert np.array_equal(merge_plateaus(xy, height, labels, edge, 0.05, 0.075, 1.3, 1.0), labels)
+
+
+def test_judging_crowns_in_elevation_on_a_slope_gives_fewer_pieces_and_a_better_f1(monkeypatch):
+    """On a held-out open broadleaf stand (seed 2, 60 m) on a 30 degree slope, the off-centre and plateau
+    rules judged in elevation give fewer trees (42 true: 52 against 59) and a better F1 (0.85 against
+    0.79) than judged by heights above the ground."""
+    from sylva.core.segment.ncut import method
+    from sylva.core.terrain import normalize
+    from sylva.testing import crowns, synth
+
+    stand, spec = crowns.suite_preset("broadleaf", "open", 20, seed=2, width_m=60.0, slope_deg=30.0)
+    scan = synth.simulate_scan(stand, spec)
+    cloud = normalize(scan.cloud)
+
+    def metrics():
+        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                                   scan.truth_tree, stand.trees)
+
+    on = metrics()
+    with monkeypatch.context() as m:
+        for name in ("merge_off_centre", "merge_plateaus"):
+            rule = getattr(method, name)
+            m.setattr(method, name, lambda *a, _rule=rule, elev=None, **k: _rule(*a, **k))
+        off = metrics()
+    assert abs(on["n_detected"] - on["n_true"]) < abs(off["n_detected"] - off["n_true"])
+    assert on["f1"] > off["f1"] + 0.03
+
+
 def test_merging_level_shoulders_gives_fewer_pieces_of_open_broadleaf_crowns(monkeypatch):
     """On open broadleaves (held-out seed), judging the plateau rule again on the finished crowns
     merges pieces of crowns: fewer trees and a better detection F1."""
@@ -508,19 +591,22 @@ def _no_op(xy, height, labels, *rest, **options):
 
 def test_merging_off_centre_crowns_gives_a_truer_count_and_a_better_f1(monkeypatch):
     """On open and dense broadleaves of two seeds, merging the pieces of a crown whose apex is
-    off-centre gives fewer trees (the pieces) on every stand and a better detection F1 over them
-    (seed 2's open stand alone, since trees are matched at their apex in elevation: 0.860 vs 0.863)."""
+    off-centre gives no more trees on any stand, fewer (the pieces) over them, and a better detection
+    F1 over them (seed 3's dense stand alone is unchanged, 115 trees, since the crowns are judged from
+    their apex in elevation)."""
     from sylva.core.segment.ncut import method
 
-    f1_on, f1_off = [], []
+    n_on, n_off, f1_on, f1_off = [], [], [], []
     for seed in (2, 3):
         for structure in ("open", "dense"):
             on, off = _with_and_without(monkeypatch, method, "merge_off_centre", _no_op, "broadleaf", structure,
                                         20, seed=seed)
-            assert on["n_detected"] < off["n_detected"], (seed, structure)
+            assert on["n_detected"] <= off["n_detected"], (seed, structure)
+            n_on.append(on["n_detected"])
+            n_off.append(off["n_detected"])
             f1_on.append(on["f1"])
             f1_off.append(off["f1"])
-    assert np.mean(f1_on) > np.mean(f1_off)
+    assert sum(n_on) < sum(n_off) and np.mean(f1_on) > np.mean(f1_off)
 
 
 def _surface(shapes, step=0.35, seed=4):

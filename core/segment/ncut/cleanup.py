@@ -37,6 +37,23 @@ def label_tops(xy, height, labels):
     return labels[top], xy[top], height[top]
 
 
+def tree_relative(xy, elev, height, labels):
+    """(every labelled point's height above the ground under its tree's apex, that ground's
+    elevation per label, 0 for none).
+
+    The apex is the tree's highest point in elevation (ties as :func:`label_tops`), and these
+    heights keep the crown's own shape on sloping ground, where heights above the local ground
+    lift its downhill side and put its highest point downhill of its apex (Khosravipour et al.
+    2015).  On level ground they are the heights above ground.  Points of no tree keep their
+    height."""
+    size = int(labels.max(initial=0)) + 1
+    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(elev, dtype=np.float64),
+                        np.ascontiguousarray(labels, dtype=np.int64), size)
+    gnd = np.zeros(size)
+    gnd[labels[top]] = elev[top] - height[top]
+    return np.where(labels > 0, elev - gnd[labels], height), gnd
+
+
 def _tops_within(xy, height, labels, bounds, scale):
     """label_tops plus every label's top height (``top_h[id]``, 0 for none), the tops' allometric
     crown radii and whether that crown lies within ``bounds`` (xmin, ymin, xmax, ymax: the data's
@@ -168,7 +185,7 @@ LEAN_REACH = 2.0
 
 def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, steep: np.ndarray,
                      bounds, height_ratio: float = LEAN_HEIGHT_RATIO,
-                     reach: float = LEAN_REACH, scale: float = 1.0) -> np.ndarray:
+                     reach: float = LEAN_REACH, scale: float = 1.0, elev=None) -> np.ndarray:
     """Labels with every piece of a crown (an off-centre rounded "tree") merged into the tree
     beside whose crown it lies.
 
@@ -183,9 +200,14 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
     :class:`~sylva.core.tops.SteepApex` test) is a conifer overtopped on one side, whose exposed
     crown does lean away from its neighbour, and a tree whose allometric crown reaches past
     ``bounds`` (xmin, ymin, xmax, ymax: the data's extent; a tile's buffer edge) may be cut by
-    it: both are left alone.  No per-tile statistic.  Sylva, not in Hu et al."""
+    it: both are left alone.  ``elev`` (the points' elevations, optional): each tree is judged from its
+    apex in elevation, its heights measured from the ground under it (:func:`tree_relative`), so on
+    sloping ground a round crown is not taken off-centre.  No per-tile statistic.  Sylva, not in
+    Hu et al."""
     if not (labels > 0).any():
         return labels
+    if elev is not None:
+        height, _ = tree_relative(xy, elev, height, labels)
     tid, txy, th, top_h, r, inside = _tops_within(xy, height, labels, bounds, scale)
     size = len(top_h)
     w, sx, sy, sq = _crown_moments(np.ascontiguousarray(xy[:, 0], dtype=np.float64),
@@ -224,7 +246,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
 
 
 def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bounds, plateau: float,
-                   prominence: float, reach: float, contact_m: float, scale: float = 1.0) -> np.ndarray:
+                   prominence: float, reach: float, contact_m: float, scale: float = 1.0, elev=None) -> np.ndarray:
     """Labels with every tree whose top is a level shoulder of a neighbour's crown merged into it.
 
     The plateau rule of the cut (:func:`~.cut.unjoined_plateaus`, step 4 of
@@ -238,19 +260,27 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     crown pieces left in the suite's open broadleaf stand (20 points/m², seed 0) have their top
     within 2 % of its height of a taller crown's points.  Trees whose crown may be cut by
     ``bounds`` (xmin, ymin, xmax, ymax: the data's extent, a tile's buffer edge) are left alone.
-    A lower tree with several such neighbours joins the one across the highest contact.  No
+    A lower tree with several such neighbours joins the one across the highest contact.  ``elev``
+    (the points' elevations, optional): the tops, their contacts and how level they are are judged in
+    elevation, the tops from their apex in elevation (:func:`tree_relative`): two leaders of one
+    crown stand at one elevation, not at one height above a sloping ground.  No
     per-tile statistic.  Sylva, not in Hu et al.; measured in :mod:`sylva.core.segment.ncut`
     (step 5)."""
     if not (labels > 0).any():
         return labels
+    gnd = np.zeros(int(labels.max()) + 1)
+    if elev is not None:
+        height, gnd = tree_relative(xy, elev, height, labels)
     tid, txy, th, top_h, r, inside = _tops_within(xy, height, labels, bounds, scale)
     size = len(top_h)
+    top_z = top_h + gnd                 # the tops' elevations (their heights when elev is None)
     tx, ty, far = np.zeros(size), np.zeros(size), np.zeros(size)
     tx[tid], ty[tid], far[tid] = txy[:, 0], txy[:, 1], reach * r
-    # the trees with a top of nearly their height within reach (from the tops alone)
+    # the trees with a top of nearly one elevation within reach (from the tops alone)
+    tz = top_z[tid]
     p, q = cKDTree(txy).query_pairs(float(far.max(initial=0.0)), output_type="ndarray").T
-    hi, lo = np.where(th[p] >= th[q], p, q), np.where(th[p] >= th[q], q, p)
-    near = ((th[lo] >= (1.0 - plateau) * th[hi]) & (np.hypot(*(txy[hi] - txy[lo]).T) < far[tid[hi]])
+    hi, lo = np.where(tz[p] >= tz[q], p, q), np.where(tz[p] >= tz[q], q, p)
+    near = ((tz[hi] - tz[lo] <= plateau * th[hi]) & (np.hypot(*(txy[hi] - txy[lo]).T) < far[tid[hi]])
             & inside[hi] & inside[lo])
     usable = np.zeros(size, dtype=bool)
     usable[tid[hi[near]]] = True
@@ -260,8 +290,8 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     cap = np.flatnonzero(usable[labels] & (height >= floor * top_h[labels]))
     if len(cap) < 2:
         return labels
-    pts = np.column_stack([xy[cap], height[cap]]).astype(np.float64)      # metres above ground
-    partner = _level_contacts(pts, labels[cap].astype(np.int64), float(contact_m), top_h, tx, ty, far,
+    pts = np.column_stack([xy[cap], height[cap] + gnd[labels[cap]]]).astype(np.float64)   # elevations
+    partner = _level_contacts(pts, labels[cap].astype(np.int64), float(contact_m), top_h, top_z, tx, ty, far,
                               float(plateau), float(prominence))
     target = np.where(partner >= 0, partner, np.arange(size))
     for _ in range(size):                                  # chains end at a tree that stays (higher tops)
@@ -389,7 +419,7 @@ def _pairs_within(xyz, query, r):
 
 
 @njit
-def _level_contacts(xyz, labels, r, top_h, tx, ty, reach, plateau, prominence):
+def _level_contacts(xyz, labels, r, top_h, top_z, tx, ty, reach, plateau, prominence):
     """Per label a: the neighbour b its crown touches highest (points within ``r``, d as in
     :func:`_pairs_within`) among those :func:`merge_plateaus` joins it to (-1: none); one pass
     over the points of ``a`` that stand within ``prominence`` of its top."""
@@ -402,14 +432,14 @@ def _level_contacts(xyz, labels, r, top_h, tx, ty, reach, plateau, prominence):
     for p in range(xyz.shape[0]):
         a = labels[p]
         px, py, pz = xyz[p, 0], xyz[p, 1], xyz[p, 2]
-        if top_h[a] - pz >= prominence * top_h[a]:
+        if top_z[a] - pz >= prominence * top_h[a]:
             continue
         for m in range(_near_cells(cid[p], gx, gy, gz, cells)):
             g = cells[m]
             for t in range(start[g], start[g + 1]):
                 j = member[t]
                 b = labels[j]
-                if b == a or top_h[b] < top_h[a] or (top_h[b] == top_h[a] and b > a):
+                if b == a or top_z[b] < top_z[a] or (top_z[b] == top_z[a] and b > a):
                     continue                    # b must be the higher top (ties: the lower id)
                 dx = px - xyz[j, 0]
                 dy = py - xyz[j, 1]
@@ -417,7 +447,7 @@ def _level_contacts(xyz, labels, r, top_h, tx, ty, reach, plateau, prominence):
                 if (dx * dx + dy * dy) + dz * dz > r2:
                     continue
                 saddle = min(pz, xyz[j, 2])
-                if (top_h[a] < (1.0 - plateau) * top_h[b] or top_h[a] - saddle >= prominence * top_h[a]
+                if (top_z[b] - top_z[a] > plateau * top_h[b] or top_z[a] - saddle >= prominence * top_h[a]
                         or np.hypot(tx[a] - tx[b], ty[a] - ty[b]) >= reach[b]):
                     continue
                 if saddle > best[a] or (saddle == best[a] and b < partner[a]):

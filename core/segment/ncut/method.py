@@ -331,7 +331,8 @@ class NormalizedCut:
         steep_id[top_id] = steep
         xy = local[:, :2]
         bounds = (*coord_min(xy), *coord_max(xy))
-        labels = merge_off_centre(xy, height, labels, steep_id, bounds, scale=self.crown_scale)
+        elev = local[:, 2]
+        labels = merge_off_centre(xy, height, labels, steep_id, bounds, scale=self.crown_scale, elev=elev)
         # an open-grown crown: a round canopy island too wide for a forest crown
         labels = merge_round_islands(xy, height, labels, bounds, self.min_height_m)
         if self.min_tree_points > 1:
@@ -346,5 +347,6 @@ class NormalizedCut:
         # a top that rises nowhere above the crown it touches: a leader or flank of a flat crown
         if self.merge_plateau > 0:
             labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
-                                    0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale)
+                                    0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale,
+                                    elev=elev)
         return labels
