@@ -528,23 +528,14 @@ def test_judging_crowns_in_elevation_on_a_slope_gives_fewer_pieces_and_a_better_
     rules judged in elevation give fewer trees (42 true: 52 against 59) and a better F1 (0.85 against
     0.79) than judged by heights above the ground."""
     from sylva.core.segment.ncut import method
-    from sylva.core.terrain import normalize
-    from sylva.testing import crowns, synth
 
-    stand, spec = crowns.suite_preset("broadleaf", "open", 20, seed=2, width_m=60.0, slope_deg=30.0)
-    scan = synth.simulate_scan(stand, spec)
-    cloud = normalize(scan.cloud)
-
-    def metrics():
-        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                   scan.truth_tree, stand.trees)
-
-    on = metrics()
+    stand, scan, cloud = _held_out_stand("broadleaf", "open", 20, seed=2, slope_deg=30.0)
+    on = _detection(stand, scan, cloud)
     with monkeypatch.context() as m:
         for name in ("merge_off_centre", "merge_plateaus"):
             rule = getattr(method, name)
             m.setattr(method, name, lambda *a, _rule=rule, elev=None, **k: _rule(*a, **k))
-        off = metrics()
+        off = _detection(stand, scan, cloud)
     assert abs(on["n_detected"] - on["n_true"]) < abs(off["n_detected"] - off["n_true"])
     assert on["f1"] > off["f1"] + 0.03
 
@@ -559,10 +550,9 @@ def test_merging_level_shoulders_gives_fewer_pieces_of_open_broadleaf_crowns(mon
     assert on["f1"] > off["f1"]
 
 
-def _with_and_without(monkeypatch, module, name, value, kind, structure, density, seed=2):
-    """Detection metrics of NormalizedCut on a stand the benchmarks do not use (``kind`` conifer:
-    testing/synth's preset, seed 3; else the extended suite, ``seed`` 2 or another, 60 m), as it is
-    and with ``module.name`` set to ``value`` (a rule turned off)."""
+def _held_out_stand(kind, structure, density, seed=2, slope_deg=0.0):
+    """(stand, scan, normalised cloud) of a stand the benchmarks do not use (``kind`` conifer:
+    testing/synth's preset, seed 3; else the extended suite, ``seed`` 2 or another, 60 m)."""
     from sylva.testing import crowns, synth
     from sylva.core.terrain import normalize
 
@@ -570,18 +560,25 @@ def _with_and_without(monkeypatch, module, name, value, kind, structure, density
         stand_spec, spec = synth.preset(structure, pulse_density=density, seed=3)
         stand = synth.make_stand(stand_spec)
     else:
-        stand, spec = crowns.suite_preset(kind, structure, density, seed=seed, width_m=60.0)
+        stand, spec = crowns.suite_preset(kind, structure, density, seed=seed, width_m=60.0, slope_deg=slope_deg)
     scan = synth.simulate_scan(stand, spec)
-    cloud = normalize(scan.cloud)
+    return stand, scan, normalize(scan.cloud)
 
-    def metrics():
-        return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
-                                   scan.truth_tree, stand.trees)
 
-    on = metrics()
+def _detection(stand, scan, cloud):
+    """Detection metrics of NormalizedCut's default on a held-out stand."""
+    return _metrics().evaluate(cloud.xyz, cloud.attrs["height"], segment_trees(cloud, NormalizedCut()),
+                               scan.truth_tree, stand.trees)
+
+
+def _with_and_without(monkeypatch, module, name, value, kind, structure, density, seed=2):
+    """Detection metrics of NormalizedCut on a held-out stand (:func:`_held_out_stand`), as it is
+    and with ``module.name`` set to ``value`` (a rule turned off)."""
+    stand, scan, cloud = _held_out_stand(kind, structure, density, seed)
+    on = _detection(stand, scan, cloud)
     with monkeypatch.context() as m:
         m.setattr(module, name, value)
-        off = metrics()
+        off = _detection(stand, scan, cloud)
     return on, off
 
 
