@@ -179,41 +179,6 @@ class TreeTops:
         return len(self.height)
 
 
-def label_maxima(xy: np.ndarray, values: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Index of the point of largest ``values`` of every label > 0, in increasing label order (ties:
-    lowest x, then y, then the first point; never the point order alone, which depends on the
-    tiling).  One pass over the points, not a sort."""
-    labels = np.ascontiguousarray(labels, dtype=np.int64)
-    return _label_maxima(np.ascontiguousarray(xy[:, :2], dtype=np.float64),
-                         np.ascontiguousarray(values, dtype=np.float64), labels, int(labels.max(initial=0)) + 1)
-
-
-@njit
-def _label_maxima(xy, h, labels, size):
-    """Ascending by label: the index of the highest point of every label > 0 (ties: lowest x,
-    then lowest y, then the lowest index), as a lexsort on (label, -h, x, y) picks it."""
-    best = np.full(size, -1, dtype=np.int64)
-    for i in range(len(labels)):
-        lab = labels[i]
-        if lab <= 0:
-            continue
-        b = best[lab]
-        if b < 0 or h[i] > h[b] or (h[i] == h[b] and (xy[i, 0] < xy[b, 0] or (
-                xy[i, 0] == xy[b, 0] and xy[i, 1] < xy[b, 1]))):
-            best[lab] = i
-    n = 0
-    for lab in range(size):
-        if best[lab] >= 0:
-            n += 1
-    out = np.empty(n, dtype=np.int64)
-    k = 0
-    for lab in range(size):
-        if best[lab] >= 0:
-            out[k] = best[lab]
-            k += 1
-    return out
-
-
 def apex_points(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Index of each tree's apex, one per label > 0 in increasing label order: its highest point in
     elevation (``xyz[:, 2]``; ties: lowest x, then y, then the first point, not the point order).
@@ -224,7 +189,12 @@ def apex_points(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
     displacement of CHM tree tops measured by Khosravipour, Skidmore, Wang, Isenburg & Khoshelham
     2015, "Effect of slope on treetop detection using a LiDAR Canopy Height Model", ISPRS J.
     Photogramm. Remote Sens. 104:44-52).  On level ground the two are the same point."""
-    return label_maxima(xyz, xyz[:, 2], labels)
+    labels = np.asarray(labels)
+    sel = np.flatnonzero(labels > 0)
+    order = sel[np.lexsort((sel, xyz[sel, 1], xyz[sel, 0], -xyz[sel, 2], labels[sel]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = labels[order][1:] != labels[order][:-1]
+    return order[first]
 
 
 def _ordered(xyz: np.ndarray, height: np.ndarray, crs) -> TreeTops:
@@ -555,4 +525,4 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
 
 
 __all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "apex_points", "find_tree_tops",
-           "label_maxima", "steep_tops"]
+           "steep_tops"]

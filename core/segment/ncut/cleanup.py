@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from ...jit import helper, njit
 from ...kernels.buckets import bucket_by_cell
 from ...kernels.unionfind import uf_union
-from ...tops import MAX_CROWN_WIDTH_M, label_maxima
+from ...tops import MAX_CROWN_WIDTH_M
 from .graph import VoxelGraph
 
 
@@ -30,8 +30,10 @@ def label_tops(xy, height, labels):
     rules were measured on (the top Sylva reports is the apex in elevation,
     :func:`sylva.core.tops.apex_points`; the same point on level ground; ties: lowest x, then y,
     then the first point; never the point order alone, which depends on the tiling).  One pass
-    (:func:`sylva.core.tops.label_maxima`), not a sort of every labelled point."""
-    top = label_maxima(xy, height, labels)
+    (:func:`_label_maxima`), not a sort of every labelled point."""
+    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64),
+                        np.ascontiguousarray(height, dtype=np.float64),
+                        np.ascontiguousarray(labels, dtype=np.int64), int(labels.max(initial=0)) + 1)
     return labels[top], xy[top], height[top]
 
 
@@ -44,8 +46,10 @@ def tree_relative(xy, elev, height, labels):
     lift its downhill side and put its highest point downhill of its apex (Khosravipour et al.
     2015).  On level ground they are the heights above ground.  Points of no tree keep their
     height."""
-    top = label_maxima(xy, elev, labels)
-    gnd = np.zeros(int(labels.max(initial=0)) + 1)
+    size = int(labels.max(initial=0)) + 1
+    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(elev, dtype=np.float64),
+                        np.ascontiguousarray(labels, dtype=np.int64), size)
+    gnd = np.zeros(size)
     gnd[labels[top]] = elev[top] - height[top]
     return np.where(labels > 0, elev - gnd[labels], height), gnd
 
@@ -61,6 +65,32 @@ def _tops_within(xy, height, labels, bounds, scale):
     inside = ((txy[:, 0] - r >= bounds[0]) & (txy[:, 1] - r >= bounds[1])
               & (txy[:, 0] + r <= bounds[2]) & (txy[:, 1] + r <= bounds[3]))
     return tid, txy, th, top_h, r, inside
+
+
+@njit
+def _label_maxima(xy, h, labels, size):
+    """Ascending by label: the index of the highest point of every label > 0 (ties: lowest x,
+    then lowest y, then the lowest index), as a lexsort on (label, -h, x, y) picks it."""
+    best = np.full(size, -1, dtype=np.int64)
+    for i in range(len(labels)):
+        lab = labels[i]
+        if lab <= 0:
+            continue
+        b = best[lab]
+        if b < 0 or h[i] > h[b] or (h[i] == h[b] and (xy[i, 0] < xy[b, 0] or (
+                xy[i, 0] == xy[b, 0] and xy[i, 1] < xy[b, 1]))):
+            best[lab] = i
+    n = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            n += 1
+    out = np.empty(n, dtype=np.int64)
+    k = 0
+    for lab in range(size):
+        if best[lab] >= 0:
+            out[k] = best[lab]
+            k += 1
+    return out
 
 
 def _reassign(xy, height, labels, bad, tid, txy, th, reach, fallback):
