@@ -102,6 +102,11 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                          "the crown width Popescu & Wynne (2004) give a tree that high (CW = 2.51503 + 0.00901 h², "
                          "at most 12 m; metres: 2.4 m at 20 m, 4.2 m at 30 m, 4.8 m above 32.4 m); 0, or a tree-top window you set, turns this off "
                          "(Sylva, not in Hu et al.)."),
+    "closed_window": ("tree-top window in a closed canopy, factor", "Where the canopy around a top is closed (crowns "
+                      "reaching half its height cover at least 75 % of the ground within two crown radii), "
+                      "neighbours have narrowed the crowns: the maxima of a window whose share of the crown width "
+                      "(TOP_WINDOW_CROWN) shrinks by this factor are tree tops too; 1, or a tree-top window you "
+                      "set, turns this off, as does GROWTH open-grown (Sylva, not in Hu et al.)."),
     "apex_window_m": ("steep-apex window (m)", "Maxima of this narrow window also count as tree tops when the "
                       "canopy falls away steeply from them (conifer tips overtopped on one side by a taller "
                       "neighbour; Sylva, not in the paper); 0 turns this off."),
@@ -113,13 +118,14 @@ NCUT_PARAMS = method_params(NormalizedCut, {
                           "least this many points and spans 2.5 m; smaller pieces join the nearest tree "
                           "(Sylva, not in the paper; after Hamraz et al. 2017); 0 turns this off."),
 }, advanced=("voxel_m", "radius_m", "sigma_h_m", "sigma_v_m", "sigma_intensity", "sigma_colour",
-             "top_window_points", "top_window_crown", "apex_window_m", "apex_slope", "apex_sectors",
-             "understory_points"),
+             "top_window_points", "top_window_crown", "closed_window", "apex_window_m", "apex_slope",
+             "apex_sectors", "understory_points"),
    ranges={"voxel_m": (0.05, 10.0), "radius_m": (0.05, 50.0), "sigma_h_m": (0.01, 100.0),
            "sigma_v_m": (0.01, 100.0), "sigma_intensity": (0.001, 100.0), "sigma_colour": (0.001, 10.0),
-           "top_window_points": (0.0, 10000.0), "top_window_crown": (0.0, 2.0), "apex_window_m": (0.0, 20.0),
+           "top_window_points": (0.0, 10000.0), "top_window_crown": (0.0, 2.0), "closed_window": (0.0, 1.0),
+           "apex_window_m": (0.0, 20.0),
            "apex_slope": (0.01, 100.0), "apex_sectors": (1, 8), "understory_points": (0, 1000000)},
-   prefix="Normalised cut: ", optional=("understory_points", "top_window_crown"))
+   prefix="Normalised cut: ", optional=("understory_points", "top_window_crown", "closed_window"))
 
 
 

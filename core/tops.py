@@ -204,6 +204,15 @@ def _ordered(xyz: np.ndarray, height: np.ndarray, crs) -> TreeTops:
     return TreeTops(xyz, height, np.arange(1, len(height) + 1, dtype=np.int64), crs)
 
 
+def union_tops(tops: TreeTops, more: TreeTops, take: np.ndarray) -> TreeTops:
+    """``tops`` and the tops of ``more`` where ``take`` (a mask over ``more``) that are not among
+    them (the same point), ordered and numbered as :func:`find_tree_tops` orders them."""
+    xyz = np.concatenate([np.asarray(tops.xyz, dtype=np.float64).reshape(-1, 3), more.xyz[take]])
+    height = np.concatenate([tops.height, more.height[take]])
+    _, first = np.unique(xyz, axis=0, return_index=True)
+    return _ordered(xyz[first], height[first], tops.crs)
+
+
 def _one_per_plateau(xy: np.ndarray, height: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Indices keeping one maximum per group of equal-height maxima within each other's window."""
     n = len(xy)
@@ -525,4 +534,4 @@ def find_tree_tops(cloud_or_chm: Union[PointCloud, Raster], window: Optional[Win
 
 
 __all__ = ["FixedWindow", "VariableWindow", "SteepApex", "TreeTops", "apex_points", "find_tree_tops",
-           "steep_tops"]
+           "steep_tops", "union_tops"]

@@ -153,15 +153,16 @@ def test_shipped_model_is_the_chain(sylva_provider, tmp_path):
 
 @pytest.mark.qgis
 def test_a_graph_saved_before_a_later_parameter_still_validates(sylva_provider, tmp_path):
-    """UNDERSTORY_POINTS and TOP_WINDOW_CROWN came after graphs were saved: a graph with no value for them
-    validates."""
+    """UNDERSTORY_POINTS, TOP_WINDOW_CROWN and CLOSED_WINDOW came after graphs were saved: a graph with no
+    value for them validates."""
     import xml.etree.ElementTree as ET
 
     from qgis.core import QgsProcessingModelAlgorithm
 
     tree = ET.parse(MODEL)
     for parent in tree.iter():
-        for option in [o for o in parent if o.get("name") in ("UNDERSTORY_POINTS", "TOP_WINDOW_CROWN")]:
+        later = ("UNDERSTORY_POINTS", "TOP_WINDOW_CROWN", "CLOSED_WINDOW")
+        for option in [o for o in parent if o.get("name") in later]:
             parent.remove(option)
     tree.write(tmp_path / "old.model3")
     model = QgsProcessingModelAlgorithm()

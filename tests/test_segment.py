@@ -306,6 +306,7 @@ def test_canopy_cover_is_low_around_a_lone_tree_and_high_in_a_closed_canopy():
 @pytest.mark.parametrize("kind, structure, density, off", [
     ("broadleaf", "open", 20, {"open_cover": 0.0}),             # the open-canopy reach (open_cover, open_reach)
     ("broadleaf", "medium", 50, {"top_window_crown": 0.0}),     # the crown-share tree-top window
+    ("tall", "dense", 20, {"closed_window": 1.0}),              # the closed canopy's narrower window
 ])
 def test_a_crown_rule_gives_a_truer_count_and_a_better_f1(kind, structure, density, off):
     """On a stand the benchmarks do not use (seed 2, 60 m), the rule gives a number of trees no
@@ -957,6 +958,8 @@ def test_windows_widen_at_low_density_only():
         assert np.allclose(allometric, np.maximum(2.0, 0.4 * cw)) and (allometric[h > 17.0] > 2.0).all()
         both, _ = NormalizedCut().windows(cloud, cloud.local_xyz(), h, crown)
         assert np.array_equal(both, np.maximum(wide, allometric))
+        closed, _ = NormalizedCut(top_window_points=0.0).windows(cloud, cloud.local_xyz(), h, crown, share=0.4)
+        assert np.allclose(closed, np.maximum(2.0, 0.16 * cw))      # a closed canopy's window (closed_window)
         fixed = NormalizedCut(top_window_points=0.0, top_window_crown=0.0, apex_window_m=0.0)
         fw, fa = fixed.windows(cloud, cloud.local_xyz(), h, crown)
         assert (fw == 2.0).all() and (fa == 0.0).all()
@@ -970,6 +973,8 @@ def test_windows_widen_at_low_density_only():
         NormalizedCut(top_window_points=-1.0)
     with pytest.raises(ValueError, match="top_window_crown"):
         NormalizedCut(top_window_crown=float("nan"))
+    with pytest.raises(ValueError, match="closed_window"):
+        NormalizedCut(closed_window=1.5)
 
 
 def test_steep_apex_rule_is_wired_into_the_top_search():
@@ -1140,6 +1145,7 @@ def test_the_open_grown_preset_keeps_park_trees_whole():
 
     preset = NormalizedCut(growth="open-grown")
     assert preset.crown_scale == OPEN_GROWN and preset.radius_m == GROWTH_PRESETS["open-grown"]["radius_m"]
+    assert preset.closed_window == 1.0                  # crowns grown without neighbours: no closed-canopy window
     assert NormalizedCut(growth="open-grown", radius_m=1.2).radius_m == 1.2
     assert NormalizedCut(growth="forest") == NormalizedCut()
     with pytest.raises(ParameterError, match="growth"):

@@ -7,7 +7,7 @@ from sylva.core.cloud import INTERNATIONAL_FOOT, PointCloud, Units
 from sylva.core.errors import Cancelled, EmptyInputError, InputError
 from sylva.core.raster import Raster
 from sylva.core.terrain import canopy_height_model
-from sylva.core.tops import FixedWindow, SteepApex, TreeTops, VariableWindow, find_tree_tops
+from sylva.core.tops import FixedWindow, SteepApex, TreeTops, VariableWindow, find_tree_tops, union_tops
 
 UTM = pyproj.CRS.from_epsg(26912)
 
@@ -324,3 +324,17 @@ def test_steep_apex_columns_do_not_depend_on_the_tile_extent():
     far = rng.uniform(-40.17, -20.0, (500, 2))          # a neighbour's points, 20 m and more away
     wider = _steep(np.vstack([xy, far]), np.concatenate([h, np.full(len(far), 25.0)]), cand, rule)
     assert np.array_equal(alone, wider)
+
+
+def test_union_tops_adds_the_taken_tops_once_in_find_order():
+    cloud = crowns([(10.0, 10.0, 20.0), (13.0, 10.0, 18.0), (30.0, 30.0, 15.0)])
+    wide = find_tree_tops(cloud, window=FixedWindow(8.0))
+    narrow = find_tree_tops(cloud, window=FixedWindow(2.0))
+    assert len(wide) == 2 and len(narrow) == 3
+    none = union_tops(wide, narrow, np.zeros(len(narrow), dtype=bool))
+    np.testing.assert_array_equal(none.xyz, wide.xyz)
+    every = union_tops(wide, narrow, np.ones(len(narrow), dtype=bool))
+    np.testing.assert_array_equal(every.xyz, narrow.xyz)            # no top twice, ordered by height
+    np.testing.assert_array_equal(every.tree_id, [1, 2, 3])
+    np.testing.assert_array_equal(every.height, [20.0, 18.0, 15.0])
+

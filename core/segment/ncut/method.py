@@ -17,7 +17,7 @@ from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import (TOP_TOLERANCE_M, attach_free, crown_radius_m, merge_off_centre, merge_plateaus,
                       merge_small, within_crown_reach)
-from .cut import PLATEAU_REACH, cut_graph
+from .cut import CLOSED_COVER, PLATEAU_REACH, cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
 from .islands import merge_round_islands
@@ -57,7 +57,7 @@ OPEN_GROWN = 2.5
 #: ``benchmarks/segmentation.py --kinds parkland --growth open-grown`` (issue 16).
 GROWTH_PRESETS = {
     "forest": {},
-    "open-grown": dict(crown_scale=OPEN_GROWN, radius_m=1.5, height_m=3.0),
+    "open-grown": dict(crown_scale=OPEN_GROWN, radius_m=1.5, height_m=3.0, closed_window=1.0),
 }
 
 
@@ -81,6 +81,12 @@ class NormalizedCut:
     Popescu & Wynne's (2004) allometry gives a tree as high as the point
     (:func:`~.cleanup.crown_radius_m`): their variable window, narrowed because
     the cuts merge surplus tops (0: off).
+    ``closed_window``: where the canopy around a top is closed (at least
+    ``CLOSED_COVER`` of the ground within ``COVER_REACH`` crown radii, as the
+    open-canopy reach below judges it) the crowns are narrowed by their
+    neighbours: the maxima of a window whose crown share is this factor x
+    ``top_window_crown`` are tops too (1: off; the "open-grown" preset, whose
+    crowns grew without neighbours).
     ``apex_window_m``, ``apex_slope``, ``apex_sectors``: the steep-apex rule
     (:class:`sylva.core.tops.SteepApex`): a maximum of this narrow window is a
     top too when the canopy drops at least ``apex_slope`` m per m from it in
@@ -144,6 +150,7 @@ class NormalizedCut:
     top_window_m: float = 2.0
     top_window_points: float = 25.0
     top_window_crown: float = 0.4
+    closed_window: float = 0.4
     apex_window_m: float = 0.8
     apex_slope: float = 3.0
     apex_sectors: int = 5
@@ -188,6 +195,8 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: merge_reach, merge_prominence, crown_reach, min_tree_points, "
                                  "understory_points, understory_extent_m, open_cover, open_reach and "
                                  "merge_height_ratio must be >= 0 and finite")
+        if not 0 <= self.closed_window <= 1:
+            raise ParameterError(f"NormalizedCut: closed_window must be between 0 and 1, not {self.closed_window}")
         if not (0 <= self.top_window_points and 0 <= self.top_window_crown < float("inf")
                 and 0 <= self.apex_window_m < float("inf") and 0 < self.top_window_m < float("inf")):
             raise ParameterError("NormalizedCut: top_window_points, top_window_crown and apex_window_m must be "
@@ -196,7 +205,7 @@ class NormalizedCut:
             raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
 
     def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
-                crown: np.ndarray, density: np.ndarray = None):
+                crown: np.ndarray, density: np.ndarray = None, share: float = 1.0):
         """(top window, apex window) diameters in metres, one per point of the cloud.
 
         Each is widened where the scan is sparse to hold ``top_window_points`` /
@@ -205,14 +214,15 @@ class NormalizedCut:
         fixed size, never a statistic of the tile, so any tiling gives the same
         windows), and the top window to ``top_window_crown`` x the allometric
         crown width at the point's height.  An apex window as wide as the top
-        window adds nothing."""
+        window adds nothing.  ``share`` scales the crown's widening (``closed_window``: the
+        window of a closed canopy)."""
         if density is None:
             density = local_canopy_density(cloud, local, crown)
         wide = np.full(len(local), float(self.top_window_m))
         if self.top_window_points > 0:
             wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
         if self.top_window_crown > 0:
-            wide = np.maximum(wide, self.top_window_crown * 2.0 * crown_radius_m(height, self.crown_scale))
+            wide = np.maximum(wide, share * self.top_window_crown * 2.0 * crown_radius_m(height, self.crown_scale))
         apex = np.zeros(len(local))
         if self.apex_window_m > 0:
             apex = np.maximum(float(self.apex_window_m),
@@ -221,19 +231,35 @@ class NormalizedCut:
         return wide, apex
 
     def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None):
-        """Tree tops among the highest point of every TOP_CELL_M column (see step 3)."""
-        from ...tops import FixedWindow, SteepApex, find_tree_tops
+        """Tree tops among the highest point of every TOP_CELL_M column (see step 3): the maxima of
+        each point's window and, where the canopy around them is closed, those of the narrower
+        ``closed_window`` one."""
+        from ...tops import FixedWindow, SteepApex, find_tree_tops, union_tops
 
-        wide, apex = self.windows(cloud, local, height, crown, density)
+        if density is None:
+            density = local_canopy_density(cloud, local, crown)
         sel = np.flatnonzero(crown)
         search = sel[column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
+        subset = cloud.subset(search)
         rule = None
         if self.apex_window_m > 0 and self.apex_window_m < self.top_window_m:
             rule = SteepApex(float(self.apex_window_m), self.apex_slope, int(self.apex_sectors))
-        return find_tree_tops(cloud.subset(search), window=FixedWindow(float(self.top_window_m)),
-                              min_height_m=self.min_height_m, progress=progress,
-                              cancelled=cancelled, apex=rule, diameters=wide[search],
-                              apex_diameters=apex[search] if rule is not None else None)
+
+        def maxima(share, prog):
+            wide, apex = self.windows(cloud, local, height, crown, density, share)
+            return find_tree_tops(subset, window=FixedWindow(float(self.top_window_m)),
+                                  min_height_m=self.min_height_m, progress=prog, cancelled=cancelled,
+                                  apex=rule, diameters=wide[search],
+                                  apex_diameters=apex[search] if rule is not None else None)
+
+        tops = maxima(1.0, scaled(progress, 0.0, 0.5))
+        if self.closed_window >= 1 or self.top_window_crown <= 0:
+            return tops
+        more = maxima(self.closed_window, scaled(progress, 0.5, 1.0))
+        xy = (more.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
+        reach = np.minimum(COVER_REACH * crown_radius_m(more.height, self.crown_scale), COVER_MAX_M)
+        closed = canopy_cover_at_tops(local, height, crown, xy, more.height, reach) >= CLOSED_COVER
+        return union_tops(tops, more, closed)
 
     def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel):
         """(canopy cover around each top, whether it is a steep apex) for the open-canopy reach of the
