@@ -51,7 +51,7 @@ from .io.chunks import chunk_tiles
 from .io.tiles import Tile, file_checksum, list_tiles
 from .pipeline import PipelineOptions, TileJob, is_complete, part_paths, process_tile
 from .progress import CancelCheck, Progress, check, report
-from .treeids import run_wide_remaps
+from .treeids import run_wide_remaps, unowned_trees
 
 
 def make_jobs(tiles: Sequence[Tile], out_dir, options: PipelineOptions) -> List[TileJob]:
@@ -94,16 +94,19 @@ def failure_record(job: TileJob, err: BaseException, out: Path) -> dict:
 
 # --------------------------------------------------------------------------- tree IDs of the run
 
-def _resolve_ids(records, out_dir, bits) -> Dict[str, dict]:
-    """Per tile, the {old ID: new ID} its files need after run-wide collision resolution."""
+def _resolve_ids(records, out_dir, bits, complete: bool) -> Dict[str, dict]:
+    """Per tile, the {old ID: new ID} its files need after run-wide collision resolution
+    (``complete``: every tile of the run is done, see :func:`run_wide_remaps`)."""
     tiles = {}
     for r in records:
         z = np.load(part_paths(out_dir, r["name"])["ids"])
         tiles[r["name"]] = (z["owned_keys"], z["seen_keys"], z["seen_ids"])
-    return run_wide_remaps(tiles, bits)
+    return run_wide_remaps(tiles, bits, complete)
 
 
-def _remap_las(path, mapping: dict) -> None:
+def _remap_las(path, mapping: dict) -> int:
+    """Rewrite the tile's ``treeID`` {old: new}; return how many points it left with no tree (new 0:
+    their tree is owned by no tile, see :func:`run_wide_remaps`)."""
     from .io.las import read_las, tree_labels, write_las
 
     cloud = read_las(path)
@@ -115,6 +118,7 @@ def _remap_las(path, mapping: dict) -> None:
     hit = old[order][pos] == tid
     tid[hit] = new[order][pos[hit]]
     write_las(path, cloud.with_attrs(treeID=tid.astype(np.int32)))
+    return int((hit & (tid == 0)).sum())
 
 
 
@@ -139,6 +143,8 @@ class RunReport:
     compile_seconds: float = 0.0   # of ``seconds``: compiling the numba kernels (a first run after installing)
     dtm: Optional[str] = None        # dtm.vrt: the tiles' terrain (CRS vertical units), QGIS's 3D terrain
     chm: Optional[str] = None        # chm.vrt: the tiles' canopy height model (m)
+    unowned_edge_trees: int = 0    # segments across tile edges owned by no tile (treeids.run_wide_remaps)
+    unowned_edge_points: int = 0   # their points in the tiles' LAS files, which carry no tree ID
 
     @property
     def points_per_s(self) -> float:
@@ -170,6 +176,10 @@ class RunReport:
                             f"{self.points / max(self.work_seconds, 1e-9):,.0f} points/s")
         if self.id_collisions_rewritten:
             lines.append(f"{self.id_collisions_rewritten} tile(s) rewritten to resolve tree-ID collisions")
+        if self.unowned_edge_trees:
+            lines.append(f"{self.unowned_edge_trees} segment(s) across tile edges owned by no tile (the neighbouring "
+                         f"tiles segmented the edge differently): their {self.unowned_edge_points:,} points carry no "
+                         f"tree ID (a wider BUFFER_M makes the tiles agree)")
         for f in self.failures:
             lines.append(f"FAILED {f['name']} ({f.get('attempts', 0)} attempt(s)): {f['reason']}")
         return "\n".join(lines) + "\n"
@@ -429,10 +439,11 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
         report(progress, 0.9, "merging")
         merger.finish()
         done = [records[j.name] for j in jobs if j.name in records]
-        maps = _resolve_ids(done, out, options.id_bits)
+        maps = _resolve_ids(done, out, options.id_bits, complete=len(done) == len(jobs))
+        unowned_points = 0
         for name, mapping in maps.items():
             merger.remap(name, mapping)
-            _remap_las(part_paths(out, name)["las"], mapping)
+            unowned_points += _remap_las(part_paths(out, name)["las"], mapping)
             ids_path = part_paths(out, name)["ids"]
             z = dict(np.load(ids_path))
             for k in ("owned_ids", "seen_ids"):
@@ -454,7 +465,8 @@ def _run(inputs, out, options, workers, scheduler, resume, progress, cancelled, 
         tiles=done, failures=failures, skipped=skipped, trees=int(sum(r["trees"] for r in done)),
         points=int(sum(r["points"] for r in done)), seconds=round(time.perf_counter() - t0, 3),
         workers=int(workers), scheduler=None if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
-        peak_rss_mb_per_worker=peaks, id_collisions_rewritten=len(maps),
+        peak_rss_mb_per_worker=peaks, unowned_edge_trees=unowned_trees(maps), unowned_edge_points=unowned_points,
+        id_collisions_rewritten=sum(any(v for v in m.values()) for m in maps.values()),
         gpkg=None if gpkg is None else str(gpkg), tileset=None if root is None else str(root),
         compile_seconds=round(_compile_seconds(done, skipped, c0), 3), **mosaics)
     atomic_write_bytes(out / "report.json", (json.dumps(result.as_dict(), indent=1, default=str) + "\n").encode())

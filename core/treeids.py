@@ -74,12 +74,17 @@ def tree_ids(keys: np.ndarray, bits: int = 31) -> np.ndarray:
     return out
 
 
-def run_wide_remaps(tiles: Mapping[str, Tuple[np.ndarray, np.ndarray, np.ndarray]], bits: int = 31) -> Dict[str, dict]:
+def run_wide_remaps(tiles: Mapping[str, Tuple[np.ndarray, np.ndarray, np.ndarray]], bits: int = 31,
+                    complete: bool = True) -> Dict[str, dict]:
     """Per tile, the {old ID: new ID} its files need once :func:`tree_ids` has run over the whole run.
 
     ``tiles``: per tile name, (keys of the trees it owns, keys of every tree it saw, the IDs it gave
     those); each tile resolved collisions among the tops it saw, so a tile whose local choice differs
     from the run-wide one is rewritten (rare: IDs then depend only on the run's set of trees).
+    An ID a tile saw that no tile owns maps to 0 (no tree): a segment across a tile edge that the
+    neighbouring tiles' buffered segmentations cut differently, so that each tile's apex of it lies
+    in another tile; its points then carry no ID rather than one that no table holds.  Only when the
+    run is ``complete``: a tile that failed may own it when it is run again.
     """
     owned = [np.asarray(k, dtype=np.int64).reshape(-1, 2) for k, _, _ in tiles.values()]
     if not owned:
@@ -90,9 +95,14 @@ def run_wide_remaps(tiles: Mapping[str, Tuple[np.ndarray, np.ndarray, np.ndarray
     for name, (_, seen_keys, seen_ids) in tiles.items():
         m = {}
         for k, v in zip(np.asarray(seen_keys).reshape(-1, 2).tolist(), np.asarray(seen_ids).tolist()):
-            new = lookup.get(tuple(k))
-            if new is not None and new != v:
+            new = lookup.get(tuple(k), 0 if complete else v)
+            if new != v:
                 m[int(v)] = new
         if m:
             maps[name] = m
     return maps
+
+
+def unowned_trees(maps: Mapping[str, dict]) -> int:
+    """How many tree IDs :func:`run_wide_remaps` found seen by some tile and owned by none."""
+    return len({old for m in maps.values() for old, new in m.items() if new == 0})

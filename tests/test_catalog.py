@@ -12,7 +12,7 @@ from sylva.core.io.gpkg import read_gpkg
 from sylva.core.io.las import read_las, write_las
 from sylva.core.io.tiles import list_tiles, read_vpc, write_vpc
 from sylva.core.pipeline import PipelineOptions
-from sylva.core.treeids import grid_keys, tree_ids
+from sylva.core.treeids import grid_keys, run_wide_remaps, tree_ids, unowned_trees
 from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
 FAST = PipelineOptions(reconstruct=False)
@@ -64,6 +64,7 @@ def assert_same_forest(a: Path, b: Path, min_agreement=0.995):
     ta, tb = tree_table(a).columns["tree_id"], tree_table(b).columns["tree_id"]
     assert len(np.unique(ta)) == len(ta) and len(np.unique(tb)) == len(tb)   # no tree twice
     assert np.array_equal(np.sort(ta), np.sort(tb))         # the same trees, the same IDs
+    assert np.isin(la[la > 0], ta).all() and np.isin(lb[lb > 0], tb).all()   # every point's tree is in the table
     return (la == lb).mean()
 
 
@@ -273,6 +274,14 @@ def test_tree_ids_are_stable_and_collisions_resolved_run_wide(stand, tmp_path):
     assert len(np.unique(ids)) == 150 and ids.min() > 0 and ids.max() < 256
     p = perm[perm < 150]
     assert np.array_equal(tree_ids(small[p], bits=8), ids[p])          # order does not matter
+    # an ID a tile saw (its points carry it) that no tile owns becomes 0; owned ones keep or change theirs
+    k = np.array([[5, 7]]), np.array([[9, 9]])
+    maps = run_wide_remaps({"a": (k[0], np.concatenate(k), np.array([11, 12])),
+                            "b": (np.zeros((0, 2), dtype=np.int64), k[0], np.array([13]))}, bits=31)
+    own = int(tree_ids(k[0])[0])
+    assert maps == {"a": {11: own, 12: 0}, "b": {13: own}} and unowned_trees(maps) == 1
+    incomplete = run_wide_remaps({"a": (k[0], np.concatenate(k), np.array([11, 12]))}, complete=False)
+    assert incomplete == {"a": {11: own}}                # a failed tile may yet own the other
     # a whole run with 9-bit IDs (many collisions): tiled and single give the same IDs
     root, _, _ = stand
     opts = PipelineOptions(reconstruct=False, id_bits=9)
