@@ -4,6 +4,7 @@
     python benchmarks/pipeline.py --km2           # also 1 km2 at 20 pts/m2 (~20 M points)
     python benchmarks/pipeline.py --parts equivalence,workers
     python benchmarks/pipeline.py --parts chunks  # one 5-50 M-point file in chunks (whole up to 10 M)
+    python benchmarks/pipeline.py --parts edges   # tall dense stands in 3x3 tiles: segments no tile owns
 
 Prints what it measures; targets (issue 6): identical tree count and IDs and
 >= 99.5 % same labels for 3x3 / 6x6 tiles vs one tile; speed-up >= 1.8 with 2
@@ -33,12 +34,17 @@ PULSES = 12.5   # ~20 points/m2 with multiple returns
 
 def make_tiles(folder: Path, size_m: float, splits, seed: int = 1, pulses: float = PULSES) -> dict:
     """Simulate a size_m x size_m stand and write it cut into n x n tiles for each n of ``splits``."""
-    from sylva.core.io.las import write_las
     from sylva.testing.synth import ScanSpec, StandSpec, make_stand, simulate_scan
 
     stand = make_stand(StandSpec(width_m=size_m, depth_m=size_m, stems_per_ha=250, crown_overlap=0.5, seed=seed))
     scan = simulate_scan(stand, ScanSpec(pulse_density=pulses, seed=seed))
-    cloud = scan.cloud
+    return {"points": len(scan.cloud), "trees": len(stand.trees), "folders": cut_tiles(folder, scan.cloud, splits)}
+
+
+def cut_tiles(folder: Path, cloud, splits) -> dict:
+    """{n: folder of ``cloud`` written cut into n x n LAZ tiles} for each n of ``splits``."""
+    from sylva.core.io.las import write_las
+
     x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
     out = {}
     for n in splits:
@@ -53,16 +59,18 @@ def make_tiles(folder: Path, size_m: float, splits, seed: int = 1, pulses: float
             idx = order[bounds[k]:bounds[k + 1]]
             write_las(d / f"t_{k // n:02d}_{k % n:02d}.laz", cloud.subset(np.sort(idx)))
         out[n] = d
-    return {"points": len(cloud), "trees": len(stand.trees), "folders": out}
+    return out
 
 
-def run_in_fresh_process(src, out, workers=1, dask_workers=0, reconstruct=False, chunk_size_m=0.0) -> dict:
+def run_in_fresh_process(src, out, workers=1, dask_workers=0, reconstruct=False, chunk_size_m=0.0,
+                         buffer_m=15.0) -> dict:
     """Run the catalog in a new Python; returns the report as a dict."""
     code = (
         "import json, sys\n"
         "from sylva.core.catalog import run_catalog\n"
         "from sylva.core.pipeline import PipelineOptions\n"
-        f"opts = PipelineOptions(reconstruct={reconstruct!r}, chunk_size_m={float(chunk_size_m)!r})\n"
+        f"opts = PipelineOptions(reconstruct={reconstruct!r}, chunk_size_m={float(chunk_size_m)!r}, "
+        f"buffer_m={float(buffer_m)!r})\n"
         f"if {dask_workers}:\n"
         "    from distributed import Client, LocalCluster\n"
         f"    cluster = LocalCluster(n_workers={dask_workers}, threads_per_worker=1, processes=True,\n"
@@ -120,6 +128,29 @@ def equivalence(work: Path, size_m=240.0):
               f"{str(np.array_equal(ids[n], ids[1])):>9} {100 * agree:10.3f}% {reps[n]['seconds']:7.1f}")
     ok = all(np.array_equal(ids[n], ids[1]) and (labs[n][1] == labs[1][1]).mean() >= 0.995 for n in (3, 6))
     print(f"   target (same count, same IDs, >= 99.5 % labels): {'MET' if ok else 'MISSED'}")
+
+
+def edges(work: Path, densities=(5.0, 20.0), buffers=(15.0, 25.0)):
+    """Tall dense stands (sylva.testing.crowns kind tall: 30-60 m trees, crowns up to 12 m wide) in
+    3 x 3 tiles against one tile: the segments across tile edges that no tile owns (their points
+    carry no tree ID) and the labels, with the default buffer and a wider one."""
+    from sylva.testing import crowns
+    from sylva.testing.synth import simulate_scan
+
+    print("\n== Tile edges in tall dense stands (1 ha, sylva.testing.crowns kind tall, seed 0), ncut, no reconstruction")
+    print(f"   {'pts/m2':>6} {'buffer m':>8} {'trees 1x1':>9} {'trees 3x3':>9} {'unowned':>8} {'their points':>13} "
+          f"{'same label':>11}")
+    for density in densities:
+        stand, spec = crowns.suite_preset("tall", "dense", density, seed=0)
+        folders = cut_tiles(work / f"edges_{density:g}", simulate_scan(stand, spec).cloud, (1, 3))
+        for buffer_m in buffers:
+            reps, labs = {}, {}
+            for n, folder in folders.items():
+                out = work / f"edges_{density:g}_{buffer_m:g}_{n}"
+                reps[n], labs[n] = run_in_fresh_process(folder, out, buffer_m=buffer_m), labels_of(out)
+            agree = (labs[3][1] == labs[1][1]).mean()
+            print(f"   {density:6g} {buffer_m:8g} {reps[1]['trees']:9d} {reps[3]['trees']:9d} "
+                  f"{reps[3]['unowned_edge_trees']:8d} {reps[3]['unowned_edge_points']:13,d} {100 * agree:10.3f}%")
 
 
 def workers(work: Path, size_m=480.0, repeats=3):
@@ -224,7 +255,8 @@ def main():
     parts = [p for p in args.parts.split(",") if p] + (["km2"] if args.km2 else [])
     try:
         for part in parts:
-            {"equivalence": equivalence, "workers": workers, "memory": memory, "chunks": chunks, "km2": km2}[part](work)
+            {"equivalence": equivalence, "workers": workers, "memory": memory, "chunks": chunks, "edges": edges,
+             "km2": km2}[part](work)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
