@@ -31,7 +31,7 @@ def run(args: dict, feedback: Feedback) -> Result:
     report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
                          resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)
     for line in report.summary().splitlines():
-        (feedback.warn if line.startswith("FAILED") else feedback.info)(line)
+        (feedback.warn if line.startswith(("FAILED", "WARNING")) else feedback.info)(line)
     if not report.tiles:
         first = report.failures[0] if report.failures else {"name": "?", "reason": "no tile"}
         raise InputError(f"every tile failed ({len(report.failures)} of {len(report.failures)}; "

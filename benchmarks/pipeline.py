@@ -137,7 +137,8 @@ def edges(work: Path, densities=(5.0, 20.0), buffers=(15.0, 25.0)):
     from sylva.testing import crowns
     from sylva.testing.synth import simulate_scan
 
-    print("\n== Tile edges in tall dense stands (1 ha, sylva.testing.crowns kind tall, seed 0), ncut, no reconstruction")
+    print("\n== Tile edges in tall dense stands (1 ha, sylva.testing.crowns kind tall, seed 0), ncut, "
+          "no reconstruction")
     print(f"   {'pts/m2':>6} {'buffer m':>8} {'trees 1x1':>9} {'trees 3x3':>9} {'unowned':>8} {'their points':>13} "
           f"{'same label':>11}")
     for density in densities:

@@ -177,9 +177,9 @@ class RunReport:
         if self.id_collisions_rewritten:
             lines.append(f"{self.id_collisions_rewritten} tile(s) rewritten to resolve tree-ID collisions")
         if self.unowned_edge_trees:
-            lines.append(f"{self.unowned_edge_trees} segment(s) across tile edges owned by no tile (the neighbouring "
-                         f"tiles segmented the edge differently): their {self.unowned_edge_points:,} points carry no "
-                         f"tree ID (a wider BUFFER_M makes the tiles agree)")
+            lines.append(f"WARNING {self.unowned_edge_trees} segment(s) across tile edges owned by no tile (the "
+                         f"neighbouring tiles segmented the edge differently): their {self.unowned_edge_points:,} "
+                         f"points carry no tree ID (a wider BUFFER_M makes the tiles agree)")
         for f in self.failures:
             lines.append(f"FAILED {f['name']} ({f.get('attempts', 0)} attempt(s)): {f['reason']}")
         return "\n".join(lines) + "\n"

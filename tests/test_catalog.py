@@ -282,6 +282,13 @@ def test_tree_ids_are_stable_and_collisions_resolved_run_wide(stand, tmp_path):
     assert maps == {"a": {11: own, 12: 0}, "b": {13: own}} and unowned_trees(maps) == 1
     incomplete = run_wide_remaps({"a": (k[0], np.concatenate(k), np.array([11, 12]))}, complete=False)
     assert incomplete == {"a": {11: own}}                # a failed tile may yet own the other
+    from sylva.core.catalog import RunReport
+
+    rep = RunReport(tiles=[], failures=[], skipped=[], trees=1, points=9, seconds=1.0, workers=1, scheduler=None,
+                    peak_rss_mb_per_worker={}, id_collisions_rewritten=0, gpkg=None, tileset=None,
+                    unowned_edge_trees=1, unowned_edge_points=1234)
+    assert "WARNING 1 segment(s) across tile edges owned by no tile" in rep.summary()
+    assert "1,234 points carry no tree ID" in rep.summary()
     # a whole run with 9-bit IDs (many collisions): tiled and single give the same IDs
     root, _, _ = stand
     opts = PipelineOptions(reconstruct=False, id_bits=9)
