@@ -31,7 +31,10 @@ def run(args: dict, feedback: Feedback) -> Result:
     report = run_catalog(inputs, out, options, workers=max(1, int(args["WORKERS"])), scheduler=scheduler,
                          resume=bool(args["RESUME"]), progress=feedback.progress, cancelled=feedback.cancelled)
     for line in report.summary().splitlines():
-        (feedback.warn if line.startswith(("FAILED", "WARNING")) else feedback.info)(line)
+        if line.startswith(("FAILED", "WARNING ")):
+            feedback.warn(line.removeprefix("WARNING "))
+        else:
+            feedback.info(line)
     if not report.tiles:
         first = report.failures[0] if report.failures else {"name": "?", "reason": "no tile"}
         raise InputError(f"every tile failed ({len(report.failures)} of {len(report.failures)}; "
@@ -57,7 +60,10 @@ PIPELINE = Algorithm(
         "tree measurements and (optionally) 3D reconstruction — over every tile of a survey, each "
         "tile with a buffer of its neighbours' points so that no tree is lost, split or counted twice "
         "at a tile border: a tree belongs to the tile that holds its top, and its ID is derived from "
-        "the top's position, so it is the same whatever the tiling or the number of workers. Writes "
+        "the top's position, so it is the same whatever the tiling or the number of workers (where "
+        "crowns are wider than the buffer allows for, two tiles can cut a tree at their border "
+        "differently so that neither owns it: its points then carry no tree ID, and the log warns and "
+        "counts them; a wider BUFFER_M prevents it). Writes "
         "into the output folder: forest.gpkg (trees, tree_tops, crowns, crown_points, stem_points, "
         "skeletons, models_3d: the wood for QGIS's 3D view, crowns_3d: a closed crown envelope per tree "
         "for it), tiles/ (every tile with an int32 treeID), models/ (a GLB per tile and one 3D Tiles "

@@ -105,7 +105,7 @@ class QgisFeedback(S.Feedback):
         self.feedback.pushInfo(message)
 
     def warn(self, message):
-        self.feedback.reportError(message, fatalError=False)
+        self.feedback.pushWarning(message)   # orange in the dialog's log, "WARNING:" from qgis_process
 
 
 def qgs_parameter(p: S.Param):
