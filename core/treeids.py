@@ -95,6 +95,8 @@ def run_wide_remaps(tiles: Mapping[str, Tuple[np.ndarray, np.ndarray, np.ndarray
     for name, (_, seen_keys, seen_ids) in tiles.items():
         m = {}
         for k, v in zip(np.asarray(seen_keys).reshape(-1, 2).tolist(), np.asarray(seen_ids).tolist()):
+            if v == 0:
+                continue   # emptied by an earlier run: its points carry no ID ({0: new} would take every point)
             new = lookup.get(tuple(k), 0 if complete else v)
             if new != v:
                 m[int(v)] = new

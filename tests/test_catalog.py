@@ -282,6 +282,10 @@ def test_tree_ids_are_stable_and_collisions_resolved_run_wide(stand, tmp_path):
     assert maps == {"a": {11: own, 12: 0}, "b": {13: own}} and unowned_trees(maps) == 1
     incomplete = run_wide_remaps({"a": (k[0], np.concatenate(k), np.array([11, 12]))}, complete=False)
     assert incomplete == {"a": {11: own}}                # a failed tile may yet own the other
+    # a resumed run in which another tile now owns a tree an earlier run emptied (ID 0) leaves it empty
+    rerun = run_wide_remaps({"a": (np.zeros((0, 2), dtype=np.int64), k[1], np.array([0])),
+                             "b": (k[1], k[1], np.array([12]))})
+    assert 0 not in rerun.get("a", {}) and unowned_trees(rerun) == 0
     from sylva.core.catalog import RunReport
 
     rep = RunReport(tiles=[], failures=[], skipped=[], trees=1, points=9, seconds=1.0, workers=1, scheduler=None,
