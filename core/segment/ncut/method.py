@@ -257,17 +257,20 @@ class NormalizedCut:
             return tops
         more = maxima(self.closed_window, scaled(progress, 0.5, 1.0))
         xy = (more.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
-        reach = np.minimum(COVER_REACH * crown_radius_m(more.height, self.crown_scale), COVER_MAX_M)
-        closed = canopy_cover_at_tops(local, height, crown, xy, more.height, reach) >= CLOSED_COVER
-        return union_tops(tops, more, closed)
+        return union_tops(tops, more, self._cover(local, height, crown, xy, more.height) >= CLOSED_COVER)
+
+    def _cover(self, local, height, crown, top_xy, top_height):
+        """The canopy cover around each top (local metres) within ``COVER_REACH`` of its allometric
+        crown radii, at most ``COVER_MAX_M`` (:func:`canopy_cover_at_tops`)."""
+        reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
+        return canopy_cover_at_tops(local, height, crown, top_xy, top_height, reach)
 
     def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel):
         """(canopy cover around each top, whether it is a steep apex) for the open-canopy reach of the
         crown-reach merge; (None, None) when ``open_cover`` is 0."""
         if self.open_cover <= 0:
             return None, None
-        reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
-        cover = canopy_cover_at_tops(local, height, crown, graph.xyz[top_voxel, :2], top_height, reach)
+        cover = self._cover(local, height, crown, graph.xyz[top_voxel, :2], top_height)
         steep = np.zeros(len(top_id), dtype=bool)
         if self.apex_window_m > 0:
             from ...tops import SteepApex, steep_tops
