@@ -150,9 +150,10 @@ def losses(xyz, height, labels, truth_tree, trees, pairs, overtop_radius_m: floa
       the wrong height: the crown is there, the top is not where the matching looks);
     * ``fn_merged``: most of its points lie in a detected tree whose majority is another true
       tree (under-segmentation);
-    * ``fn_overtopped``: its apex (highest point in elevation) has a point of another tree higher than it
-      within ``overtop_radius_m`` horizontally: it is under a neighbour's crown and no canopy-
-      surface top can find it (counted among fn_merged / the rest as well).
+    * ``fn_overtopped``: :func:`overtopped`, its apex under a neighbour's crown (counted among
+      fn_merged / the rest as well);
+    * ``overtopped``, ``tp_overtopped``: the true trees under a neighbour's crown, and how many of
+      them are matched all the same.
     Sylva benchmark measure, not from a paper."""
     labels = np.asarray(labels, dtype=np.int64)
     truth_tree = np.asarray(truth_tree, dtype=np.int64)
@@ -172,21 +173,34 @@ def losses(xyz, height, labels, truth_tree, trees, pairs, overtop_radius_m: floa
     un_t = true_ids[~matched_t[true_ids]]
     holder = maj_t[un_t]
     fn_merged = int(np.sum((holder > 0) & (maj_d[holder] != un_t)))
-    # overtopped: a higher point of another tree within the radius of the tree's own apex
+    over = overtopped(xyz, height, truth_tree, true_ids, overtop_radius_m)
+    return {"fp_split": fp_split, "fp_offset": int(len(un_d) - fp_split), "fn_merged": fn_merged,
+            "fn_overtopped": int(over[~matched_t[true_ids]].sum()), "fn": int(len(un_t)),
+            "overtopped": int(over.sum()), "tp_overtopped": int(over[matched_t[true_ids]].sum())}
+
+
+def overtopped(xyz, height, truth_tree, tree_ids, radius_m: float = 1.0) -> np.ndarray:
+    """Per tree of ``tree_ids``: its apex (highest point in elevation) has a point of another tree
+    more than 0.5 m higher within ``radius_m`` horizontally (bool; False for a tree with no point):
+    the tree is under a neighbour's crown, and a top searched on the canopy surface with a window of
+    ``radius_m`` or more is not at its apex.  Sylva benchmark measure, not from a paper."""
     from sylva.core.tops import apex_points
 
+    tree_ids = np.asarray(tree_ids, dtype=np.int64)
+    truth_tree = np.asarray(truth_tree, dtype=np.int64)
+    out = np.zeros(len(tree_ids), dtype=bool)
+    size = max(int(truth_tree.max(initial=0)), int(tree_ids.max(initial=0))) + 1
     first = apex_points(xyz, truth_tree)
-    apex = np.full(size_t, -1, dtype=np.int64)
+    apex = np.full(size, -1, dtype=np.int64)
     apex[truth_tree[first]] = first
-    fn_over = 0
-    cand = [t for t in un_t if apex[t] >= 0]
-    if cand:
-        tree = cKDTree(xyz[:, :2])
-        for t, near in zip(cand, tree.query_ball_point(xyz[apex[cand], :2], overtop_radius_m)):
-            near = np.asarray(near, dtype=np.int64)
-            fn_over += bool(np.any((height[near] > height[apex[t]] + 0.5) & (truth_tree[near] != t)))
-    return {"fp_split": fp_split, "fp_offset": int(len(un_d) - fp_split), "fn_merged": fn_merged,
-            "fn_overtopped": int(fn_over), "fn": int(len(un_t))}
+    has = apex[tree_ids] >= 0
+    if not has.any():
+        return out
+    a = apex[tree_ids[has]]
+    near = cKDTree(xyz[:, :2]).query_ball_point(xyz[a, :2], radius_m)
+    out[has] = [bool(np.any((height[v] > height[p] + 0.5) & (truth_tree[v] != t)))
+                for v, p, t in zip((np.asarray(v, dtype=np.int64) for v in near), a, tree_ids[has])]
+    return out
 
 
 def crown_iou(xy: np.ndarray, labels_a: np.ndarray, labels_b: np.ndarray, min_points: int = 3):

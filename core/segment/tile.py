@@ -29,7 +29,7 @@ import numpy as np
 from ..cloud import ANCHOR_GRID_M, AnchoredCloud, PointCloud
 from ..progress import CancelCheck, Progress, report, scaled
 
-__all__ = ["SegmentedTile", "segment_tile", "tree_tops_of"]
+__all__ = ["SegmentedTile", "prepare_tile", "segment_tile", "tree_tops_of"]
 
 
 @dataclass(eq=False)
@@ -57,6 +57,28 @@ def tree_tops_of(cloud: PointCloud, labels: np.ndarray):
     return TreeTops(cloud.xyz[top], height[top], labels[top].astype(np.int64), cloud.crs)
 
 
+def prepare_tile(cloud: PointCloud, ground_cell_m: float = 0.5, tin_radius_m: Optional[float] = 7.5,
+                 trust_normalized: bool = True):
+    """Steps 1-2 of the chain: (the tile anchored on the global grid, without noise, with ``height``;
+    the mask of those points in ``cloud``).  What every method of :func:`segment_tile` segments (the
+    benchmarks score the methods on it, so their figures are what segmenttrees gives)."""
+    from dataclasses import fields
+
+    from ..noise import noise_mask
+    from ..terrain import SMRF, normalize
+
+    if not isinstance(cloud, AnchoredCloud) and len(cloud):
+        grid = ANCHOR_GRID_M / cloud.units.horizontal_m
+        lo = cloud.xyz[:, :2].min(axis=0)
+        anchor = np.array([np.floor(lo[0] / grid) * grid, np.floor(lo[1] / grid) * grid, 0.0])
+        cloud = AnchoredCloud(**{f.name: getattr(cloud, f.name) for f in fields(cloud)
+                                 if f.name != "anchor"}, anchor=anchor)
+    keep = ~noise_mask(cloud)
+    work = normalize(cloud.subset(keep), classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m,
+                     trust_normalized=trust_normalized)
+    return work, keep
+
+
 def segment_tile(cloud: PointCloud, method=None, ground_cell_m: float = 0.5,
                  tin_radius_m: Optional[float] = 7.5, progress: Progress = None,
                  cancelled: CancelCheck = None) -> SegmentedTile:
@@ -66,29 +88,18 @@ def segment_tile(cloud: PointCloud, method=None, ground_cell_m: float = 0.5,
     :data:`sylva.core.cloud.ANCHOR_GRID_M` (voxels and cells fall on the
     same places whatever the tile's extent); ``tin_radius_m`` 7.5 is half the
     pipeline's default buffer."""
-    from dataclasses import fields
-
-    from ..noise import noise_mask
-    from ..terrain import SMRF, is_normalized, normalize
+    from ..terrain import is_normalized
     from . import NormalizedCut, segment_trees
 
     method = NormalizedCut() if method is None else method
-    if not isinstance(cloud, AnchoredCloud) and len(cloud):
-        grid = ANCHOR_GRID_M / cloud.units.horizontal_m
-        lo = cloud.xyz[:, :2].min(axis=0)
-        anchor = np.array([np.floor(lo[0] / grid) * grid, np.floor(lo[1] / grid) * grid, 0.0])
-        cloud = AnchoredCloud(**{f.name: getattr(cloud, f.name) for f in fields(cloud)
-                                 if f.name != "anchor"}, anchor=anchor)
-    keep = ~noise_mask(cloud)
     report(progress, 0.0, "height above ground")
-    sub = cloud.subset(keep)
-    work = normalize(sub, classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m)
+    work, keep = prepare_tile(cloud, ground_cell_m, tin_radius_m)
     if hasattr(method, "resolve"):            # automatic choice (e.g. stems for a plot scan)
         method = method.resolve(work)
-    if getattr(method, "exact_ground", False) and sub.attr("height") is None and is_normalized(sub):
+    if (getattr(method, "exact_ground", False) and cloud.attr("height") is None
+            and is_normalized(cloud.subset(keep))):
         # taken as normalised (z near 0): a method that measures at breast height needs the ground itself
         # (Sylva: a synthetic plot sloping 5 % around z = 0 had heights off by up to 0.56 m)
-        work = normalize(sub, classify=SMRF(), cell_m=ground_cell_m, tin_radius_m=tin_radius_m,
-                         trust_normalized=False)
+        work, keep = prepare_tile(cloud, ground_cell_m, tin_radius_m, trust_normalized=False)
     labels = segment_trees(work, method, progress=scaled(progress, 0.1, 0.95), cancelled=cancelled)
     return SegmentedTile(work, keep, labels, tree_tops_of(work, labels), method)
