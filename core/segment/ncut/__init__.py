@@ -160,7 +160,25 @@ Steps
    open broadleaf 20 points/m² 0.834 -> 0.864, mixed open 0.78-0.80 ->
    0.79-0.81, dense stands within 0.002; conifer medium 20 0.985 -> 0.981,
    the pipeline's conifer medium 5 0.964 -> 0.959 and the shipped sample
-   0.969 -> 0.966 lose.
+   0.969 -> 0.966 lose.  **Closed canopies** (Sylva, not in Hu et al.): where
+   the canopy around the higher top is closed (``CLOSED_COVER``), the
+   neighbours bound a crown, not its height, and the merge reaches at most
+   the radius of a crown ``CLOSED_CROWN_WIDTH_M`` (9 m) wide instead of
+   Popescu & Wynne's up to 12 m: the tall stands' 30-60 m trees at 400
+   stems/ha have crowns about 5 m wide, and the 12 m crown joined
+   neighbours 4 m apart (given the true apexes as tops, tall dense at 20
+   points/m2 scores F1 0.800 with every merge on, 0.943 with none).
+   Measured with ``benchmarks/segmentation.py`` (60 stands, seed 0): tall
+   dense at 5 / 20 / 50 points/m2 0.715 / 0.720 / 0.693 -> 0.731 / 0.768 /
+   0.738, tall medium at 20 0.827 -> 0.837, conifer dense at 20 0.906 ->
+   0.910; the most a stand loses is 0.004 (tall open at 50); parkland (both
+   presets), the shipped sample and MixedConifer unchanged; held out (seed
+   1): tall dense at 5 / 20 0.629 / 0.663 -> 0.645 / 0.698, the others of
+   the panel within 0.004.  A 7 m bound gained no more in tall stands and
+   lost 0.007 on dense mixed ones; the 9 m bound on every use of the crown
+   radius (top window, clean-up), not only where the canopy is closed,
+   gained more in tall stands (dense at 20: 0.790) but lost in tall open
+   ones (0.911 -> 0.892) and on the shipped sample (0.985 -> 0.975).
    **Crown classes** (Sylva, not in Hu et al.): a lower top under
    ``merge_height_ratio`` (0.8) x the higher top's height that rises above
    their saddle and stands beyond ``UNDER_CROWN`` (0.5) of the higher

@@ -40,6 +40,13 @@ UNDER_CROWN = 0.5
 #: crown only across a saddle of the graph (step 4 of :mod:`sylva.core.segment.ncut`).
 CLOSED_COVER = 0.75
 
+#: Where the canopy around the higher top is closed (:data:`CLOSED_COVER`), the crown-reach merge
+#: reaches at most the radius of a crown this wide (m, times ``crown_scale``): Popescu & Wynne's
+#: crown width grows with height up to :data:`~sylva.core.tops.MAX_CROWN_WIDTH_M` (12 m at 32 m),
+#: but in a closed canopy the neighbours bound a crown, not its height (a tall stand's 30-60 m trees
+#: at 400 stems/ha have crowns 5 m wide).  Sylva, not in Hu et al.; see step 4 of the package.
+CLOSED_CROWN_WIDTH_M = 9.0
+
 
 # --------------------------------------------------------------------------- cuts
 
@@ -473,6 +480,8 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             dip = (low - saddle[i]) / low
             gap = np.hypot(*(graph.xyz[top_voxel[p], :2] - graph.xyz[top_voxel[q], :2]))
             reach = crown_radius_m(top_height[hi], params.crown_scale)
+            if cover is not None and cover[hi] >= CLOSED_COVER:
+                reach = min(reach, 0.5 * CLOSED_CROWN_WIDTH_M * params.crown_scale)
             factor = params.merge_reach
             if cover is not None and cover[hi] < params.open_cover and not steep[lo]:
                 factor = params.open_reach          # a rounded bump of an open-grown crown
