@@ -246,7 +246,8 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
 
 
 def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bounds, plateau: float,
-                   prominence: float, reach: float, contact_m: float, scale: float = 1.0, elev=None) -> np.ndarray:
+                   prominence: float, reach: float, contact_m: float, scale: float = 1.0, elev=None,
+                   max_radius=None) -> np.ndarray:
     """Labels with every tree whose top is a level shoulder of a neighbour's crown merged into it.
 
     The plateau rule of the cut (:func:`~.cut.unjoined_plateaus`, step 4 of
@@ -263,8 +264,9 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     A lower tree with several such neighbours joins the one across the highest contact.  ``elev``
     (the points' elevations, optional): the tops, their contacts and how level they are are judged in
     elevation, the tops from their apex in elevation (:func:`tree_relative`): two leaders of one
-    crown stand at one elevation, not at one height above a sloping ground.  No
-    per-tile statistic.  Sylva, not in Hu et al.; measured in :mod:`sylva.core.segment.ncut`
+    crown stand at one elevation, not at one height above a sloping ground.  ``max_radius``
+    (optional, per label): the most a tree's crown radius can be (a closed canopy's bound,
+    :data:`~.cut.CLOSED_CROWN_WIDTH_M`).  No per-tile statistic.  Sylva, not in Hu et al.; measured in :mod:`sylva.core.segment.ncut`
     (step 5)."""
     if not (labels > 0).any():
         return labels
@@ -275,6 +277,8 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     size = len(top_h)
     top_z = top_h + gnd                 # the tops' elevations (their heights when elev is None)
     tx, ty, far = np.zeros(size), np.zeros(size), np.zeros(size)
+    if max_radius is not None:
+        r = np.minimum(r, max_radius[tid])
     tx[tid], ty[tid], far[tid] = txy[:, 0], txy[:, 1], reach * r
     # the trees with a top of nearly one elevation within reach (from the tops alone)
     tz = top_z[tid]
