@@ -266,8 +266,8 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     elevation, the tops from their apex in elevation (:func:`tree_relative`): two leaders of one
     crown stand at one elevation, not at one height above a sloping ground.  ``max_radius``
     (optional, per label): the most a tree's crown radius can be (a closed canopy's bound,
-    :data:`~.cut.CLOSED_CROWN_WIDTH_M`).  No per-tile statistic.  Sylva, not in Hu et al.; measured in :mod:`sylva.core.segment.ncut`
-    (step 5)."""
+    :data:`~.cut.CLOSED_CROWN_WIDTH_M`).  No per-tile statistic.  Sylva, not in Hu et al.;
+    measured in :mod:`sylva.core.segment.ncut` (step 5)."""
     if not (labels > 0).any():
         return labels
     gnd = np.zeros(int(labels.max()) + 1)
