@@ -337,6 +337,12 @@ def crown_radius_m(height_m, scale: float = 1.0):
     return 0.5 * scale * np.minimum(2.51503 + 0.00901 * h * h, MAX_CROWN_WIDTH_M)
 
 
+def crown_height_m(width_m: float) -> float:
+    """The height (m) at which Popescu & Wynne's (2004) crown width (:func:`crown_radius_m`) is
+    ``width_m``: the inverse of CW = 2.51503 + 0.00901 h²."""
+    return float(np.sqrt(max(width_m - 2.51503, 0.0) / 0.00901))
+
+
 @helper
 def _grid3(xyz, r):
     """A uniform grid of cells of edge >= ``r`` over the points (at most about 4 cells per point):

@@ -14,7 +14,7 @@ import scipy.linalg
 
 from ...jit import njit
 from ...progress import CancelCheck, Progress, check, report
-from .cleanup import clean_labels, crown_radius_m
+from .cleanup import clean_labels, crown_height_m, crown_radius_m
 from .graph import VoxelGraph
 
 
@@ -40,12 +40,15 @@ UNDER_CROWN = 0.5
 #: crown only across a saddle of the graph (step 4 of :mod:`sylva.core.segment.ncut`).
 CLOSED_COVER = 0.75
 
-#: Where the canopy around the higher top is closed (:data:`CLOSED_COVER`), the crown-reach merge
-#: reaches at most the radius of a crown this wide (m, times ``crown_scale``): Popescu & Wynne's
-#: crown width grows with height up to :data:`~sylva.core.tops.MAX_CROWN_WIDTH_M` (12 m at 32 m),
-#: but in a closed canopy the neighbours bound a crown, not its height (a tall stand's 30-60 m trees
-#: at 400 stems/ha have crowns 5 m wide).  Sylva, not in Hu et al.; see step 4 of the package.
+#: Where the canopy around the higher top is closed (:data:`CLOSED_COVER`), the merges judge a
+#: crown as at most this wide (m, times ``crown_scale``): Popescu & Wynne's crown width grows with
+#: height up to :data:`~sylva.core.tops.MAX_CROWN_WIDTH_M` (12 m at 32 m), but in a closed canopy
+#: the neighbours bound a crown, not its height (a tall stand's 30-60 m trees at 400 stems/ha have
+#: crowns 5 m wide).  A taller tree there is judged as one :data:`CLOSED_HEIGHT_M` high (26.8 m,
+#: whose crown is that wide): its crown reach, and the prominence and levelness of a lower top
+#: beside it.  Sylva, not in Hu et al.; see step 4 of the package.
 CLOSED_CROWN_WIDTH_M = 9.0
+CLOSED_HEIGHT_M = crown_height_m(CLOSED_CROWN_WIDTH_M)
 
 
 # --------------------------------------------------------------------------- cuts
@@ -479,20 +482,22 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
             low = top_height[lo]
             dip = (low - saddle[i]) / low
             gap = np.hypot(*(graph.xyz[top_voxel[p], :2] - graph.xyz[top_voxel[q], :2]))
-            reach = crown_radius_m(top_height[hi], params.crown_scale)
+            judged = top_height[hi]                 # the height the higher crown is judged by
             if cover is not None and cover[hi] >= CLOSED_COVER:
-                reach = min(reach, 0.5 * CLOSED_CROWN_WIDTH_M * params.crown_scale)
+                judged = min(judged, CLOSED_HEIGHT_M)   # a closed canopy bounds the crowns
+            reach = crown_radius_m(judged, params.crown_scale)
+            bump = (low - saddle[i]) / min(low, judged)   # the lower top's prominence, relative
             factor = params.merge_reach
             if cover is not None and cover[hi] < params.open_cover and not steep[lo]:
                 factor = params.open_reach          # a rounded bump of an open-grown crown
-            level = (top_height[hi] - low) / top_height[hi] < params.merge_plateau
+            level = (top_height[hi] - low) / judged < params.merge_plateau
             # a summit markedly lower than its neighbour's is the apex of a tree of a lower crown class
             # (see step 4); a lower "top" rising nowhere above the saddle, or under the higher crown, is
             # a bump of that crown's flank
             apart = (low < params.merge_height_ratio * top_height[hi] and dip > 0
                      and gap >= UNDER_CROWN * reach)
-            if not apart and ((dip < params.merge_prominence and gap < factor * reach)
-                    or (level and dip < 0.5 * params.merge_prominence and gap < PLATEAU_REACH * reach)):
+            if not apart and ((bump < params.merge_prominence and gap < factor * reach)
+                    or (level and bump < 0.5 * params.merge_prominence and gap < PLATEAU_REACH * reach)):
                 # a bump inside the crown the higher top's height implies (see step 4)
                 if (dip, hi) < (partner_dip[lo], partner[lo]):
                     partner[lo], partner_dip[lo] = hi, dip
