@@ -281,9 +281,14 @@ def test_a_suppressed_tree_under_the_canopy_is_a_tree_of_its_own():
     mine = ids[np.argmax(counts)]
     assert np.sum(labels[~under] == mine) <= 5      # a tree of its own (edge echoes of the crown above may join)
     assert len(np.unique(labels[labels > 0])) == 3
-    # without the rule its points are taken by the tall tree above it or by none
-    off = segment_trees(cloud, NormalizedCut(understory_points=0))
+    # without either rule its points are taken by the tall tree above it or by none; the
+    # lower-layer rule alone finds its apex too (under the crown's edge, below a gap)
+    off = segment_trees(cloud, NormalizedCut(understory_points=0, lower_layer=False))
     assert len(np.unique(off[off > 0])) == 2
+    layer = segment_trees(cloud, NormalizedCut(understory_points=0))
+    ids, counts = np.unique(layer[under], return_counts=True)
+    assert ids[np.argmax(counts)] > 0 and counts.max() >= 0.9 * under.sum()
+    assert len(np.unique(layer[layer > 0])) == 3
     # given tops are the trees: nothing is added
     assert len(np.unique(segment_trees(cloud, NormalizedCut(), tops=tops_of(
         [(10.0, 10.0, 22.0, 6.0), (24.0, 10.0, 20.0, 5.0)])))) == 3          # 0 and the two tops

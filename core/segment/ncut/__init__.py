@@ -62,7 +62,13 @@ Steps
    steep-apex rule (:class:`sylva.core.tops.SteepApex`: ``apex_window_m``,
    ``apex_slope``, ``apex_sectors``) adds the tips of narrow conifers that a taller
    neighbour overtops within the window, the main loss of recall in dense
-   stands.  Every voxel gets the tree top nearest to it along the graph
+   stands.  Apexes of a lower crown layer are tops too (``lower_layer``,
+   :func:`~.layers.lower_layer_apexes`): a crown point under the edge of a
+   higher crown with an empty band above it and a crown below it, where the
+   canopy is closed and the scan dense, as Hamraz et al. (2017) find the
+   lower layers below a gap in the vertical profile: dense broadleaves at
+   20 points/m2 0.792 -> 0.820, dense conifers 0.910 -> 0.917, dense mixed
+   stands 0.810 -> 0.817 (figures and what it costs in that module).  Every voxel gets the tree top nearest to it along the graph
    (multi-source Dijkstra); a step costs the Eq. 2 dissimilarity -log w_ij
    plus ``climb`` x the height it gains, so a region runs down its own crown
    and stops at the crease where the neighbouring crown rises again.  Voxels

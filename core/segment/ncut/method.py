@@ -21,6 +21,7 @@ from .cut import CLOSED_COVER, CLOSED_CROWN_WIDTH_M, PLATEAU_REACH, cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
 from .islands import merge_round_islands
+from .layers import lower_layer_apexes
 
 
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
@@ -123,6 +124,9 @@ class NormalizedCut:
     highest point, when it holds at least ``understory_points`` crown points
     and spans ``understory_extent_m`` horizontally (0 points: off; not when
     tops are given).
+    ``lower_layer``: apexes of a lower crown layer under the edge of a higher
+    crown (a gap above them, a crown below, a closed canopy) are tops too
+    (:func:`~.layers.lower_layer_apexes`; not when tops are given).
     ``min_tree_points``: smaller trees are merged into their neighbours (where
     the scan is sparse, the first returns of ``MIN_TREE_AREA_M2`` of canopy
     around the top, if fewer).
@@ -165,6 +169,7 @@ class NormalizedCut:
     open_reach: float = 0.9
     understory_points: int = 40
     understory_extent_m: float = 2.5
+    lower_layer: bool = True
     min_tree_points: int = MIN_TREE_POINTS
     crown_reach: float = 1.25
     crown_scale: float = 1.0
@@ -233,8 +238,8 @@ class NormalizedCut:
     def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None):
         """Tree tops among the highest point of every TOP_CELL_M column (see step 3): the maxima of
         each point's window and, where the canopy around them is closed, those of the narrower
-        ``closed_window`` one."""
-        from ...tops import FixedWindow, SteepApex, find_tree_tops, union_tops
+        ``closed_window`` one; then the apexes of a lower crown layer (``lower_layer``)."""
+        from ...tops import FixedWindow, SteepApex, TreeTops, find_tree_tops, union_tops
 
         if density is None:
             density = local_canopy_density(cloud, local, crown)
@@ -253,11 +258,18 @@ class NormalizedCut:
                                   apex_diameters=apex[search] if rule is not None else None)
 
         tops = maxima(1.0, scaled(progress, 0.0, 0.5))
-        if self.closed_window >= 1 or self.top_window_crown <= 0:
+        if self.closed_window < 1 and self.top_window_crown > 0:
+            more = maxima(self.closed_window, scaled(progress, 0.5, 1.0))
+            xy = (more.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
+            tops = union_tops(tops, more, self._cover(local, height, crown, xy, more.height) >= CLOSED_COVER)
+        if not self.lower_layer:
             return tops
-        more = maxima(self.closed_window, scaled(progress, 0.5, 1.0))
-        xy = (more.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
-        return union_tops(tops, more, self._cover(local, height, crown, xy, more.height) >= CLOSED_COVER)
+        check(cancelled)
+        top_xy = (tops.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
+        apex = sel[lower_layer_apexes(local[sel, :2], height[sel], density[sel], top_xy, tops.height,
+                                      self.crown_scale, lambda xy, h: self._cover(local, height, crown, xy, h))]
+        more = TreeTops(cloud.xyz[apex], height[apex], np.arange(1, len(apex) + 1, dtype=np.int64), cloud.crs)
+        return union_tops(tops, more, np.ones(len(apex), dtype=bool))
 
     def _cover(self, local, height, crown, top_xy, top_height):
         """The canopy cover around each top (local metres) within ``COVER_REACH`` of its allometric
