@@ -556,6 +556,58 @@ def test_merging_level_shoulders_gives_fewer_pieces_of_open_broadleaf_crowns(mon
     assert on["f1"] > off["f1"]
 
 
+def test_a_neighbours_point_at_a_crowns_edge_is_not_its_apex():
+    """apex_near_top: a point of tree 1 beyond APEX_REACH of its top, 3 cm higher than everything
+    near its top and with a point of tree 2 beside it, goes to tree 2 (left there it would be tree 1's
+    reported apex, 2.6 m from its stem); the same point with no other tree near it stays, as does one
+    higher than tree 2's own apex; a tree whose apex is near its top is left as it is."""
+    from sylva.core.segment.ncut.cleanup import APEX_REACH, apex_near_top, crown_radius_m
+
+    r = APEX_REACH * crown_radius_m(np.array([20.0, 22.0]))
+    assert r[0] < 2.6 < 1.0 + r[0]
+    # tree 1: a dome at (0, 0), apex 20 m; tree 2: a dome at (5, 0), apex 22 m, reaching to x = 2.9
+    g = np.arange(-2.5, 2.51, 0.25)
+    gx, gy = np.meshgrid(g, g)
+    one = np.column_stack([gx.ravel(), gy.ravel()])
+    one = one[np.hypot(*one.T) <= 2.5]
+    two = one + [5.0, 0.0]
+    two = two[two[:, 0] >= 2.9]
+    xy = np.vstack([one, two, [[2.6, 0.0]]])
+    elev = np.r_[20.0 - 0.3 * np.hypot(*one.T) ** 2, 22.0 - 0.1 * np.hypot(*(two - [5.0, 0.0]).T) ** 2, 20.03]
+    labels = np.r_[np.ones(len(one), dtype=np.int64), np.full(len(two), 2), 1]
+    tops = np.array([[0.0, 0.0], [5.0, 0.0]])
+    out = apex_near_top(xy, elev, labels, tops, np.array([1, 2]), r)
+    assert out[-1] == 2 and np.array_equal(out[:-1], labels[:-1])
+    # tree 2 absent: nobody to give the point to
+    solo = labels != 2
+    assert np.array_equal(apex_near_top(xy[solo], elev[solo], labels[solo], tops, np.array([1, 0]), r),
+                          labels[solo])
+    # higher than tree 2's own apex: not tree 2's either
+    high = elev.copy()
+    high[-1] = 22.5
+    assert np.array_equal(apex_near_top(xy, high, labels, tops, np.array([1, 2]), r), labels)
+    # the point near tree 1's top: its apex is near its top, nothing moves
+    near = xy.copy()
+    near[-1] = [0.5, 0.0]
+    assert np.array_equal(apex_near_top(near, elev, labels, tops, np.array([1, 2]), r), labels)
+
+
+def test_apexes_kept_near_their_tops_give_a_better_f1_on_sloping_dense_stands(monkeypatch):
+    """On held-out dense stands (seed 2, 60 m) on a 30 degree slope, where a neighbour's uphill
+    points stand higher than a crown's own apex, giving such points at a crown's edge back to their
+    tree (apex_near_top) finds more trees: a better detection F1 on each (broadleaf 0.733 -> 0.750,
+    mixed 0.766 -> 0.779)."""
+    from sylva.core.segment.ncut import method
+
+    for kind in ("broadleaf", "mixed"):
+        stand, scan, cloud = _held_out_stand(kind, "dense", 20, seed=2, slope_deg=30.0)
+        on = _detection(stand, scan, cloud)
+        with monkeypatch.context() as m:
+            m.setattr(method, "apex_near_top", lambda xy, elev, labels, *rest: labels)
+            off = _detection(stand, scan, cloud)
+        assert on["f1"] > off["f1"], kind
+
+
 def _held_out_stand(kind, structure, density, seed=2, slope_deg=0.0):
     """(stand, scan, normalised cloud) of a stand the benchmarks do not use (``kind`` conifer:
     testing/synth's preset, seed 3; else the extended suite, ``seed`` 2 or another, 60 m)."""

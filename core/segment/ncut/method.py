@@ -15,8 +15,8 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import (TOP_TOLERANCE_M, attach_free, crown_radius_m, merge_off_centre, merge_plateaus,
-                      merge_small, within_crown_reach)
+from .cleanup import (APEX_REACH, TOP_TOLERANCE_M, apex_near_top, attach_free, crown_radius_m, merge_off_centre,
+                      merge_plateaus, merge_small, within_crown_reach)
 from .cut import CLOSED_COVER, CLOSED_CROWN_WIDTH_M, PLATEAU_REACH, cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
@@ -394,4 +394,11 @@ class NormalizedCut:
             labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
                                     0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale,
                                     elev=elev, max_radius=max_radius)
-        return labels
+        # a tree's apex is near a top it grew from, not a neighbour's point at its crown's edge
+        pts, vox = np.flatnonzero(crown)[on_top], graph.point_voxel[on_top]
+        o = np.lexsort((-xy[pts, 1], -xy[pts, 0], height[pts], vox))   # per top voxel, its highest last
+        last = np.r_[vox[o][1:] != vox[o][:-1], True]
+        voxel_label = np.zeros(graph.n, dtype=np.int64)
+        voxel_label[vox[o][last]] = labels[pts[o][last]]
+        reach = APEX_REACH * crown_radius_m(top_height, self.crown_scale)
+        return apex_near_top(xy, elev, labels, graph.xyz[top_voxel, :2], voxel_label[top_voxel], reach)
