@@ -157,7 +157,8 @@ def attach_free(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, free: np
 APEX_REACH = 0.75
 
 #: A crown point above its tree's apex beyond APEX_REACH is the neighbour's when a point of
-#: another tree lies within this many metres of it (the graph's horizontal reach, ``radius_m``).
+#: another tree lies within this many metres of it (as far as the forest graph reaches across,
+#: ``NormalizedCut.radius_m``: the two are touching crowns).
 APEX_EDGE_M = 1.0
 
 

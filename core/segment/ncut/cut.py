@@ -406,13 +406,18 @@ def unjoined_plateaus(xy: np.ndarray, height: np.ndarray, touching: np.ndarray, 
     the higher, the lower within :data:`PLATEAU_REACH` allometric crown radii
     of the higher (:func:`crown_radius_m` times ``scale``), both rounded (not ``steep``), the
     canopy around the higher not closed (``cover`` below :data:`CLOSED_COVER`);
-    sorted.  Sylva, not in Hu et al."""
+    sorted.  With no saddle to judge the pair by, the higher crown is judged as
+    one no wider than :data:`CLOSED_CROWN_WIDTH_M` (a tree no taller than
+    :data:`CLOSED_HEIGHT_M`): Popescu & Wynne's extrapolated 12 m crown of a
+    45 m tree joined the tops of tall neighbours 4-8 m apart (tall medium stand
+    at 2 points/m2: 10 of the 15 pairs it joined were two trees).  Sylva, not
+    in Hu et al."""
     k = len(height)
     if k < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     from scipy.spatial import cKDTree
 
-    reach = PLATEAU_REACH * crown_radius_m(height, scale)
+    reach = PLATEAU_REACH * crown_radius_m(np.minimum(height, CLOSED_HEIGHT_M), scale)
     near = cKDTree(xy).query_pairs(float(reach.max()), output_type="ndarray").astype(np.int64)
     p, q = near.min(axis=1), near.max(axis=1)
     if len(touching):
