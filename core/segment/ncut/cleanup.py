@@ -230,7 +230,11 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
                 reach: float) -> np.ndarray:
     """Trees of fewer than ``min_points[id]`` points merged into the tree within ``reach`` crown radii
     whose top is nearest (as :func:`within_crown_reach`); with none in reach their points are
-    no tree (0): a handful of points apart from every crown is not a tree.  Sylva, not in Hu et al."""
+    no tree (0): a handful of points apart from every crown is not a tree.  But a small tree whose
+    top no tree within reach is high enough to take is the apex of the tallest crown around, whose
+    lower crown the graph gave to its neighbours (a sparse scan of a tall, narrow spire: its returns
+    lie farther apart than the graph reaches up), not a fragment: it stays (the trees table flags it,
+    ``quality`` "sparse").  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
     size = np.bincount(labels, minlength=max(int(labels.max()) + 1, len(min_points)))
@@ -243,7 +247,21 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
     tid, txy, th = label_tops(xy, height, labels)
     big = ~small[tid]
     bad = np.flatnonzero(small[labels])
-    return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
+    out = _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
+    if not big.any():
+        return out
+    # the small trees with a tree within reach, none of them as high: the tallest crowns around
+    lone = np.flatnonzero(~big)
+    k = min(8, int(big.sum()))
+    dd, jj = cKDTree(txy[big]).query(txy[lone], k=k)
+    dd, jj = dd.reshape(len(lone), k), jj.reshape(len(lone), k)
+    inside = dd <= reach * crown_radius_m(th[big][jj])
+    tallest = inside.any(axis=1) & ~(inside & (th[big][jj] >= th[lone][:, None] - TOP_TOLERANCE_M)).any(axis=1)
+    keep = np.zeros(len(size), dtype=bool)
+    keep[tid[lone[tallest]]] = True
+    stay = bad[keep[labels[bad]]]
+    out[stay] = labels[stay]
+    return out
 
 
 #: A tree's apex is off-centre when it lies farther than this many RMS crown radii from the
