@@ -68,7 +68,8 @@ Steps
    canopy is closed and the scan dense, as Hamraz et al. (2017) find the
    lower layers below a gap in the vertical profile: dense broadleaves at
    20 points/m2 0.792 -> 0.820, dense conifers 0.910 -> 0.917, dense mixed
-   stands 0.810 -> 0.817 (figures and what it costs in that module).  Every voxel gets the tree top nearest to it along the graph
+   stands 0.810 -> 0.817 (figures and what it costs in that module).
+   Every voxel gets the tree top nearest to it along the graph
    (multi-source Dijkstra); a step costs the Eq. 2 dissimilarity -log w_ij
    plus ``climb`` x the height it gains, so a region runs down its own crown
    and stops at the crease where the neighbouring crown rises again.  Voxels

@@ -246,22 +246,17 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
         return labels
     tid, txy, th = label_tops(xy, height, labels)
     big = ~small[tid]
+    if big.any():
+        # the small trees with a tree within reach, none of them as high: the tallest crowns around
+        lone = np.flatnonzero(~big)
+        k = min(8, int(big.sum()))
+        dd, jj = cKDTree(txy[big]).query(txy[lone], k=k)
+        dd, jj = dd.reshape(len(lone), k), jj.reshape(len(lone), k)
+        inside = dd <= reach * crown_radius_m(th[big][jj])
+        as_high = inside & (th[big][jj] >= th[lone][:, None] - TOP_TOLERANCE_M)
+        small[tid[lone[inside.any(axis=1) & ~as_high.any(axis=1)]]] = False
     bad = np.flatnonzero(small[labels])
-    out = _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
-    if not big.any():
-        return out
-    # the small trees with a tree within reach, none of them as high: the tallest crowns around
-    lone = np.flatnonzero(~big)
-    k = min(8, int(big.sum()))
-    dd, jj = cKDTree(txy[big]).query(txy[lone], k=k)
-    dd, jj = dd.reshape(len(lone), k), jj.reshape(len(lone), k)
-    inside = dd <= reach * crown_radius_m(th[big][jj])
-    tallest = inside.any(axis=1) & ~(inside & (th[big][jj] >= th[lone][:, None] - TOP_TOLERANCE_M)).any(axis=1)
-    keep = np.zeros(len(size), dtype=bool)
-    keep[tid[lone[tallest]]] = True
-    stay = bad[keep[labels[bad]]]
-    out[stay] = labels[stay]
-    return out
+    return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
 
 
 #: A tree's apex is off-centre when it lies farther than this many RMS crown radii from the
