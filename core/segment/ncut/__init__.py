@@ -237,8 +237,13 @@ Steps
    the ``--variants`` panel at seed 1: dense conifers 0.869 -> 0.885, the
    others within 0.006.
 5. **Clean-up and points.** Nothing of a tree lies above its top; voxels cut
-   off from their top go to the neighbour they are most strongly joined to;
-   crown pieces a sparse scan left unconnected join the nearest tree within
+   off from their top go to the neighbour they are most strongly joined to
+   (a tree's tops are its own and every top merged into it: a clumped
+   open-grown crown whose gaps the graph does not cross keeps the pieces
+   around its merged tops; held-out parkland, seed 5, open at 2 points/m2,
+   "open-grown" preset: crown points without a tree 7 % -> 0.1 %, the worst
+   tree's share 100 % -> 0 %; parkland seed 0 with the preset: point accuracy
+   mean 0.794 -> 0.811, F1 mean 0.764 -> 0.770); crown pieces a sparse scan left unconnected join the nearest tree within
    ``attach_m``.  Points take their voxel's label; a point farther from its
    tree's top than ``crown_reach`` x that tree's allometric crown radius goes
    to a tree whose top is within reach (Dalponte & Coomes's maximum crown

@@ -558,13 +558,12 @@ def _level_contacts(xyz, labels, r, top_h, top_z, tx, ty, reach, plateau, promin
 
 @njit
 def _joined_to_top(a, b, vlabel, top_voxel, top_id):
-    """Per voxel: is it joined to its tree's top through voxels of that tree?
+    """Per voxel: is it joined to one of its tree's tops through voxels of that tree?
 
     The components of the edges (a, b) whose ends share a label > 0 (union-find);
     a component is good when it holds a top voxel whose label is that top's id
-    (of several tops in one component, the last one listed decides, as numpy's
-    fancy assignment does).  Sylva, not in the paper: the fragment test of
-    :func:`clean_labels`."""
+    (``top_id`` may list one tree several times: the tops merged into it).
+    Sylva, not in the paper: the fragment test of :func:`clean_labels`."""
     m = len(vlabel)
     root = np.arange(m)
     for e in range(len(a)):
@@ -578,7 +577,8 @@ def _joined_to_top(a, b, vlabel, top_voxel, top_id):
         root[i] = r
     good = np.zeros(m, dtype=np.bool_)
     for t in range(len(top_voxel)):
-        good[root[top_voxel[t]]] = vlabel[top_voxel[t]] == top_id[t]
+        if vlabel[top_voxel[t]] == top_id[t]:
+            good[root[top_voxel[t]]] = True
     out = np.empty(m, dtype=np.bool_)
     for i in range(m):
         out[i] = good[root[i]]
@@ -587,12 +587,18 @@ def _joined_to_top(a, b, vlabel, top_voxel, top_id):
 
 def clean_labels(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
                  top_id: np.ndarray, top_height: np.ndarray, tolerance_m: float,
-                 attach_m: float) -> np.ndarray:
+                 attach_m: float, seeds=None) -> np.ndarray:
     """Physical consistency of the labels, then fill the gaps.
 
     * A tree holds nothing higher than its top (+ ``tolerance_m``).
     * A tree's voxels not connected to its top through the tree itself are
-      fragments; they are released.
+      fragments; they are released.  ``seeds`` (voxels, tree ids) are the tops
+      that count, by default ``top_voxel`` and ``top_id``; the cut passes every
+      top with the tree it was merged into, so the piece of a crown around a
+      merged top stays with its tree: a clumped open-grown crown whose gaps
+      the graph does not cross, once its tops are merged, kept only the piece
+      of its highest top and lost up to 99 % of its voxels (parkland open at
+      20 points/m2, the "open-grown" preset).
     * Released voxels go to the neighbouring tree they are most strongly joined
       to (largest w_ij) among the trees whose top is high enough.
     * Voxels of top-less graph components (crown pieces a sparse scan left
@@ -607,7 +613,8 @@ def clean_labels(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
     # a given top may lie a little below its voxel's mean (another source or DTM)
     height_of[top_id] = np.maximum(top_height, z[top_voxel])
     vlabel = np.where(z <= height_of[vlabel] + tolerance_m, vlabel, 0)
-    vlabel = np.where(_joined_to_top(a, b, vlabel, top_voxel, top_id), vlabel, 0)
+    seed_voxel, seed_id = (top_voxel, top_id) if seeds is None else seeds
+    vlabel = np.where(_joined_to_top(a, b, vlabel, seed_voxel, seed_id), vlabel, 0)
     # flood the unlabelled voxels from labelled neighbours, strongest edge first
     free_a = vlabel[a] == 0            # only edges into unlabelled voxels matter
     free_b = vlabel[b] == 0

@@ -547,4 +547,4 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
     vlabel = np.where(proposal >= 0, top_id[roots[np.maximum(proposal, 0)]], 0)
     alive = roots == np.arange(k)
     return clean_labels(graph, vlabel, top_voxel[alive], top_id[alive], top_height[alive],
-                        0.0, params.attach_m)
+                        0.0, params.attach_m, seeds=(top_voxel, top_id[roots]))
