@@ -484,6 +484,28 @@ def test_a_level_top_that_rises_nowhere_above_the_crown_it_touches_joins_it():
     assert np.array_equal(out, labels)
 
 
+def test_in_a_closed_canopy_a_tall_tree_is_judged_as_a_crown_of_bounded_width():
+    """merge_plateaus with max_height (a closed canopy: CLOSED_HEIGHT_M, as the cut's merges): two level
+    50 m tops 4 m apart whose crowns touch 2.4 m below them are two trees (judged by 50 m, 2.4 m is
+    within the 7.5 % a shoulder may lie below its top, and they were merged); a 20 m pair 3.6 m apart,
+    under the bound, is one crown either way."""
+    from sylva.core.segment.ncut.cleanup import merge_plateaus
+    from sylva.core.segment.ncut.cut import CLOSED_HEIGHT_M
+
+    g = np.arange(-3.0, 3.01, 0.25)
+    gx, gy = (a.ravel() for a in np.meshgrid(g, g))
+    inside = np.hypot(gx, gy) <= 2.2
+    for top, depth, gap, merged in ((50.0, 4.0, 4.0, False), (20.0, 0.6, 3.6, True)):
+        xy = np.vstack([np.column_stack([gx[inside] + cx, gy[inside]]) for cx in (0.0, gap)])
+        height = np.tile(top - depth * (np.hypot(gx[inside], gy[inside]) / 2.2) ** 2, 2)
+        height[inside.sum():] -= 0.1
+        labels = np.repeat([1, 2], inside.sum())
+        run = lambda **k: merge_plateaus(xy, height, labels, (-60, -60, 60, 60), 0.05, 0.075, 1.3, 1.0, **k)
+        assert np.all(run() == 1)
+        bounded = run(max_height=np.array([np.inf, CLOSED_HEIGHT_M, CLOSED_HEIGHT_M]))
+        assert np.array_equal(bounded, np.ones_like(labels) if merged else labels)
+
+
 def _on_a_slope(domes, degrees=30.0):
     """(xy, elevation, height above ground, labels) of crowns (x, y, elevation) standing on ground that
     falls towards +x, 0 m at x = 0."""

@@ -337,7 +337,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
 
 def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bounds, plateau: float,
                    prominence: float, reach: float, contact_m: float, scale: float = 1.0, elev=None,
-                   max_radius=None) -> np.ndarray:
+                   max_height=None) -> np.ndarray:
     """Labels with every tree whose top is a level shoulder of a neighbour's crown merged into it.
 
     The plateau rule of the cut (:func:`~.cut.unjoined_plateaus`, step 4 of
@@ -354,9 +354,10 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     A lower tree with several such neighbours joins the one across the highest contact.  ``elev``
     (the points' elevations, optional): the tops, their contacts and how level they are are judged in
     elevation, the tops from their apex in elevation (:func:`tree_relative`): two leaders of one
-    crown stand at one elevation, not at one height above a sloping ground.  ``max_radius``
-    (optional, per label): the most a tree's crown radius can be (a closed canopy's bound,
-    :data:`~.cut.CLOSED_CROWN_WIDTH_M`).  No per-tile statistic.  Sylva, not in Hu et al.;
+    crown stand at one elevation, not at one height above a sloping ground.  ``max_height``
+    (optional, per label): the most height a tree is judged by, its crown radius and the prominence
+    and levelness of a top beside it (a closed canopy's bound, :data:`~.cut.CLOSED_HEIGHT_M`, as the
+    cut's merges judge them).  No per-tile statistic.  Sylva, not in Hu et al.;
     measured in :mod:`sylva.core.segment.ncut` (step 5)."""
     if not (labels > 0).any():
         return labels
@@ -367,25 +368,26 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     size = len(top_h)
     top_z = top_h + gnd                 # the tops' elevations (their heights when elev is None)
     tx, ty, far = np.zeros(size), np.zeros(size), np.zeros(size)
-    if max_radius is not None:
-        r = np.minimum(r, max_radius[tid])
+    judged = top_h.copy()               # the height each tree is judged by
+    if max_height is not None:
+        judged[tid] = np.minimum(th, max_height[tid])
+        r = crown_radius_m(judged[tid], scale)
     tx[tid], ty[tid], far[tid] = txy[:, 0], txy[:, 1], reach * r
     # the trees with a top of nearly one elevation within reach (from the tops alone)
     tz = top_z[tid]
     p, q = cKDTree(txy).query_pairs(float(far.max(initial=0.0)), output_type="ndarray").T
     hi, lo = np.where(tz[p] >= tz[q], p, q), np.where(tz[p] >= tz[q], q, p)
-    near = ((tz[hi] - tz[lo] <= plateau * th[hi]) & (np.hypot(*(txy[hi] - txy[lo]).T) < far[tid[hi]])
+    near = ((tz[hi] - tz[lo] <= plateau * judged[tid[hi]]) & (np.hypot(*(txy[hi] - txy[lo]).T) < far[tid[hi]])
             & inside[hi] & inside[lo])
     usable = np.zeros(size, dtype=bool)
     usable[tid[hi[near]]] = True
     usable[tid[lo[near]]] = True
     # of those, the crowns' caps: only they can touch within the prominence of a level top
-    floor = (1.0 - prominence) * (1.0 - plateau)
-    cap = np.flatnonzero(usable[labels] & (height >= floor * top_h[labels]))
+    cap = np.flatnonzero(usable[labels] & (height >= top_h[labels] - (prominence + plateau) * judged[labels]))
     if len(cap) < 2:
         return labels
     pts = np.column_stack([xy[cap], height[cap] + gnd[labels[cap]]]).astype(np.float64)   # elevations
-    partner = _level_contacts(pts, labels[cap].astype(np.int64), float(contact_m), top_h, top_z, tx, ty, far,
+    partner = _level_contacts(pts, labels[cap].astype(np.int64), float(contact_m), judged, top_z, tx, ty, far,
                               float(plateau), float(prominence))
     target = np.where(partner >= 0, partner, np.arange(size))
     for _ in range(size):                                  # chains end at a tree that stays (higher tops)
@@ -522,7 +524,8 @@ def _pairs_within(xyz, query, r):
 def _level_contacts(xyz, labels, r, top_h, top_z, tx, ty, reach, plateau, prominence):
     """Per label a: the neighbour b its crown touches highest (points within ``r``, d as in
     :func:`_pairs_within`) among those :func:`merge_plateaus` joins it to (-1: none); one pass
-    over the points of ``a`` that stand within ``prominence`` of its top."""
+    over the points of ``a`` that stand within ``prominence`` of its top (``top_h``: the heights
+    the trees are judged by)."""
     cid, start, member, gx, gy, gz = _grid3(xyz, r)
     size = len(top_h)
     best = np.full(size, -np.inf)

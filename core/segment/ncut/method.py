@@ -17,7 +17,7 @@ from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import (APEX_REACH, TOP_TOLERANCE_M, apex_near_top, attach_free, crown_radius_m, merge_off_centre,
                       merge_plateaus, merge_small, within_crown_reach)
-from .cut import CLOSED_COVER, CLOSED_CROWN_WIDTH_M, PLATEAU_REACH, cut_graph
+from .cut import CLOSED_COVER, CLOSED_HEIGHT_M, PLATEAU_REACH, cut_graph
 from .graph import (canopy_cover_at_tops, column_maxima, coord_max, coord_min, local_canopy_density,
                     top_voxels, topless_crowns, voxel_graph)
 from .islands import merge_round_islands
@@ -387,13 +387,13 @@ class NormalizedCut:
                                  self.crown_reach * self.crown_scale)
         # a top that rises nowhere above the crown it touches: a leader or flank of a flat crown
         if self.merge_plateau > 0:
-            max_radius = None
+            max_height = None
             if cover is not None:            # a closed canopy bounds the crowns (as in the cut's merges)
-                max_radius = np.full(int(top_id.max()) + 1, np.inf)
-                max_radius[top_id[cover >= CLOSED_COVER]] = 0.5 * CLOSED_CROWN_WIDTH_M * self.crown_scale
+                max_height = np.full(int(top_id.max()) + 1, np.inf)
+                max_height[top_id[cover >= CLOSED_COVER]] = CLOSED_HEIGHT_M
             labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
                                     0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale,
-                                    elev=elev, max_radius=max_radius)
+                                    elev=elev, max_height=max_height)
         # a tree's apex is near a top it grew from, not a neighbour's point at its crown's edge
         pts, vox = np.flatnonzero(crown)[on_top], graph.point_voxel[on_top]
         o = np.lexsort((-xy[pts, 1], -xy[pts, 0], height[pts], vox))   # per top voxel, its highest last
