@@ -227,14 +227,18 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
 
 
 def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_points: np.ndarray,
-                reach: float) -> np.ndarray:
+                reach: float, steep=None, apart: float = 0.0, scale: float = 1.0, max_height=None) -> np.ndarray:
     """Trees of fewer than ``min_points[id]`` points merged into the tree within ``reach`` crown radii
     whose top is nearest (as :func:`within_crown_reach`); with none in reach their points are
     no tree (0): a handful of points apart from every crown is not a tree.  But a small tree whose
     top no tree within reach is high enough to take is the apex of the tallest crown around, whose
     lower crown the graph gave to its neighbours (a sparse scan of a tall, narrow spire: its returns
     lie farther apart than the graph reaches up), not a fragment: it stays (the trees table flags it,
-    ``quality`` "sparse").  Sylva, not in Hu et al."""
+    ``quality`` "sparse").  So does a small tree whose top is a steep apex (``steep[id]``, the
+    :class:`~sylva.core.tops.SteepApex` test: the canopy drops steeply around it) farther than ``apart``
+    crown radii (:func:`crown_radius_m` times ``scale``, the neighbour judged at most ``max_height[id]``
+    high) from every tree as high: the narrow top of a conifer whose lower crown the graph gave to its
+    neighbours (a sparse scan), outside their crowns, not a leaf clump of one.  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
     size = np.bincount(labels, minlength=max(int(labels.max()) + 1, len(min_points)))
@@ -255,6 +259,14 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
         inside = dd <= reach * crown_radius_m(th[big][jj])
         as_high = inside & (th[big][jj] >= th[lone][:, None] - TOP_TOLERANCE_M)
         small[tid[lone[inside.any(axis=1) & ~as_high.any(axis=1)]]] = False
+        if steep is not None and apart > 0:
+            # a steep apex farther than `apart` crown radii from every tree as high: a narrow top of its own
+            cap = np.full(len(th), np.inf) if max_height is None else max_height[tid]
+            beside = as_high & (dd < apart * crown_radius_m(np.minimum(th[big][jj], cap[big][jj]), scale))
+            alone = np.zeros(len(lone), dtype=bool)
+            known = tid[lone] < len(steep)
+            alone[known] = steep[tid[lone][known]]
+            small[tid[lone[alone & ~beside.any(axis=1)]]] = False
     bad = np.flatnonzero(small[labels])
     return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
 

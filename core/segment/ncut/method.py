@@ -122,7 +122,10 @@ class NormalizedCut:
     ``open_cover``, ``open_reach``: where the canopy around the higher top is
     open (:func:`canopy_cover_at_tops` below ``open_cover``; 0: off), the
     crown-reach merge reaches ``open_reach`` crown radii for a rounded lower
-    top (not a steep apex of the :class:`~sylva.core.tops.SteepApex` rule).
+    top (not a steep apex of the :class:`~sylva.core.tops.SteepApex` rule);
+    a tree under ``min_tree_points`` whose top is a steep apex farther than
+    ``open_reach`` crown radii from every tree as high is kept (flagged
+    "sparse"): beyond the reach of a crown's bumps, it is a tree of its own.
     ``understory_points``, ``understory_extent_m``: a connected piece of the
     voxel graph that no top reaches (a crown under the canopy, more than
     ``height_m`` below the crowns above it) is a tree of its own, its top the
@@ -381,10 +384,18 @@ class NormalizedCut:
         labels = merge_off_centre(xy, height, labels, steep_id, bounds, scale=self.crown_scale, elev=elev)
         # an open-grown crown: a round canopy island too wide for a forest crown
         labels = merge_round_islands(xy, height, labels, bounds, self.min_height_m)
+        # a closed canopy bounds the crowns (as in the cut's merges): where the canopy around a top is
+        # closed, its tree is judged as one at most CLOSED_HEIGHT_M high
+        max_height = None
+        if cover is not None:
+            max_height = np.full(int(top_id.max()) + 1, np.inf)
+            max_height[top_id[cover >= CLOSED_COVER]] = CLOSED_HEIGHT_M
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
-            labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0) * self.crown_scale)
+            labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0) * self.crown_scale,
+                                 steep=steep_id, apart=self.open_reach, scale=self.crown_scale,
+                                 max_height=max_height)
         # crown points no top reached (graph pieces beyond radius_m of every tree, under no crown): the
         # tree within crown reach whose top is nearest, as within_crown_reach places strays
         if self.crown_reach > 0:
@@ -392,10 +403,6 @@ class NormalizedCut:
                                  self.crown_reach * self.crown_scale)
         # a top that rises nowhere above the crown it touches: a leader or flank of a flat crown
         if self.merge_plateau > 0:
-            max_height = None
-            if cover is not None:            # a closed canopy bounds the crowns (as in the cut's merges)
-                max_height = np.full(int(top_id.max()) + 1, np.inf)
-                max_height[top_id[cover >= CLOSED_COVER]] = CLOSED_HEIGHT_M
             labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
                                     0.5 * self.merge_prominence, PLATEAU_REACH, self.radius_m, self.crown_scale,
                                     elev=elev, max_height=max_height)
