@@ -245,8 +245,9 @@ Steps
    tree's share 100 % -> 0 %; parkland seed 0 with the preset: point accuracy
    mean 0.794 -> 0.811, F1 mean 0.764 -> 0.770); crown pieces a sparse
    scan left unconnected join the nearest tree within ``attach_m``.  Points
-   take their voxel's label; a point farther from its tree's top than ``crown_reach`` x that tree's allometric crown radius goes
-   to a tree whose top is within reach (Dalponte & Coomes's maximum crown
+   take their voxel's label; a point farther from its tree's top than
+   ``crown_reach`` x that tree's allometric crown radius goes to a tree
+   whose top is within reach (Dalponte & Coomes's maximum crown
    size, scaled by height; a stray carried across a neighbour's crown by the
    graph; MixedConifer crown IoU with lidR 0.489 -> 0.587); a tree whose
    apex lies off the centre of its crown (farther than ``OFF_CENTRE`` (0.8)
