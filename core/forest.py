@@ -14,8 +14,8 @@ leaf cards (:mod:`sylva.core.geometry`, :mod:`sylva.core.leaves`).
 Trees with fewer than ``min_points`` points are not dropped: they get the
 minimal stem the reconstruction gives them and ``quality = "noise"``; trees with fewer than
 :data:`~sylva.core.tops.MIN_TREE_POINTS` (20) points, which a segmentation keeps only where the scan is
-sparse or at the apex of the tallest crown around, get ``quality = "sparse"`` (their height, crown and
-model rest on few echoes).
+sparse, at the apex of the tallest crown around or at a steep apex beyond its neighbours' crowns, get
+``quality = "sparse"`` (their height, crown and model rest on few echoes).
 
 Every tree also gets a quantitative structure model (:class:`~sylva.core.qsm.QSM`,
 TreeQSM-like cylinder and branch tables, ``ModelledTree.qsm``): for the

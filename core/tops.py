@@ -50,8 +50,9 @@ MIN_TREE_HEIGHT_M = 2.0
 
 #: A tree of fewer points is no plausible tree where the scan could give it more: the normalised cut
 #: merges it into a neighbour, and where the scan is sparse and keeps it (or where it is higher than
-#: every tree around it, :func:`sylva.core.segment.ncut.cleanup.merge_small`), its row in the trees
-#: table says ``quality`` "sparse" (:func:`sylva.core.forest.model_trees`).
+#: every tree around it, or a steep apex beyond its neighbours' crowns,
+#: :func:`sylva.core.segment.ncut.cleanup.merge_small`), its row in the trees table says ``quality``
+#: "sparse" (:func:`sylva.core.forest.model_trees`).
 MIN_TREE_POINTS = 20
 
 
