@@ -26,6 +26,9 @@ from .kernels.buckets import bucket_by_cell
 
 NOISE_CLASSES = (7, 18)
 
+#: A canopy point with no other within this many metres (3-D) is noise for canopy surfaces and tops.
+ISOLATION_M = 2.0
+
 
 @dataclass(frozen=True)
 class IsolatedVoxels:
@@ -211,7 +214,7 @@ def _alone_sorted(pts, key, starts, ny, radius):
     return out
 
 
-def isolated_points(cloud: PointCloud, isolation_m: Optional[float] = 2.0,
+def isolated_points(cloud: PointCloud, isolation_m: Optional[float] = ISOLATION_M,
                     among: Optional[np.ndarray] = None, loc: Optional[np.ndarray] = None) -> np.ndarray:
     """Classified noise (7, 18) and, when ``isolation_m`` is given, points with no other point
     (of those selected by ``among``, default all) within ``isolation_m`` metres in 3-D.

@@ -294,6 +294,73 @@ def test_a_suppressed_tree_under_the_canopy_is_a_tree_of_its_own():
         [(10.0, 10.0, 22.0, 6.0), (24.0, 10.0, 20.0, 5.0)])))) == 3          # 0 and the two tops
 
 
+def test_the_skirt_of_a_steep_crown_cut_off_by_a_sparse_scan_is_not_a_tree():
+    """A steep conifer crown whose returns lie farther apart up the flank than the graph's height_m
+    (here: none between 15 and 17.5 m) falls into two components: the top and the skirt around the
+    stem.  The skirt is centred under the apex (graph.LOWER_CROWN_REACH): the tree's lower crown,
+    not an understory tree; a suppressed tree beside a dominant still is one."""
+    from sylva.core.segment.ncut import graph as G
+
+    cloud, truth = cones([(12.0, 12.0, 20.0, 3.0)], (24, 24))
+    h = cloud.attrs["height"]
+    keep = ~((h > 15.0) & (h < 17.5))
+    cloud, truth = cloud.subset(np.flatnonzero(keep)), truth[keep]
+    skirt = (truth == 1) & (cloud.attrs["height"] >= 7.0) & (cloud.attrs["height"] <= 15.0)
+    assert skirt.sum() > 200
+    labels = segment_trees(cloud, NormalizedCut())
+    assert len(np.unique(labels[labels > 0])) == 1
+    assert np.mean(labels[skirt] == labels[truth == 1].max()) > 0.9
+    # the rule off (no tops' crown radii given): the skirt passes for an understory tree
+    from unittest import mock
+    with mock.patch.object(G, "LOWER_CROWN_REACH", 0.0):
+        off = segment_trees(cloud, NormalizedCut())
+    assert len(np.unique(off[off > 0])) == 2
+    # a suppressed tree beside a dominant (its crown centred about one crown radius away) stays
+    cloud, under = _with_understory()
+    labels = segment_trees(cloud, NormalizedCut())
+    assert len(np.unique(labels[labels > 0])) == 3
+
+
+def test_the_tip_of_a_steep_crown_in_a_sparse_scan_is_its_top():
+    """At 2 points/m2 the highest return of a conifer rising 6.5 m per metre stands 3 m above the
+    next: farther than the fixed 2 m noise test, within 2 x apex_slope pulse spacings
+    (NormalizedCut._isolated).  It is the tree's top, and its lower crown (no edge of the graph
+    reaches 3 m up) is attached to it before trees are judged by their size: one tree, as high as
+    its tip.  A stray return beside the crown, and a lone return 3 m above a canopy scanned at
+    20 points/m2, are still noise."""
+    cloud, truth = cones([(12.0, 12.0, 25.0, 2.5)], (24, 24), density=2.0, seed=4)
+    h = cloud.attrs["height"]
+    keep = np.flatnonzero(h <= 21.8)
+    tip = np.array([[12.1 + ORIGIN[0], 11.9 + ORIGIN[1], 24.8 + GROUND_Z]])
+    xyz = np.vstack([cloud.xyz[keep], tip])
+    attrs = {k: np.r_[v[keep], v[keep][:1]] for k, v in cloud.attrs.items()}
+    attrs["height"][-1] = 24.8
+    attrs["classification"][-1] = 1
+    sparse = PointCloud(xyz, attrs=attrs, source="test_tile.laz")
+    labels = segment_trees(sparse, NormalizedCut())
+    assert labels[-1] > 0
+    assert len(np.unique(labels[labels > 0])) == 1
+    crown = (truth[keep] == 1) & (attrs["height"][:-1] >= 2.0)
+    assert np.mean(labels[:-1][crown] == labels[-1]) > 0.9
+    # the test itself: over a sparse scan (1 point/m2) a return 3 m above the next one 0.5 m away
+    # is a steep tip; one 1.2 m above the nearest 4 m away (beside a crown, a bird) is noise
+    local = np.array([[0.0, 0.0, 20.0], [0.5, 0.0, 17.0], [0.0, 4.0, 21.2]])
+    three = PointCloud(local + [ORIGIN[0], ORIGIN[1], GROUND_Z], attrs={"classification": np.ones(3, np.uint8)})
+    alone = NormalizedCut()._isolated(three, local, np.ones(3, bool), np.array([0, 2]), np.ones(3))
+    assert alone.tolist() == [False, True]
+    # the same lone return over a dense scan of the crown is noise
+    dense, truth = cones([(12.0, 12.0, 25.0, 2.5)], (24, 24), density=20.0, seed=4)
+    h = dense.attrs["height"]
+    keep = np.flatnonzero(h <= 21.8)
+    xyz = np.vstack([dense.xyz[keep], tip])
+    attrs = {k: np.r_[v[keep], v[keep][:1]] for k, v in dense.attrs.items()}
+    attrs["height"][-1] = 24.8
+    attrs["classification"][-1] = 1
+    labels = segment_trees(PointCloud(xyz, attrs=attrs, source="test_tile.laz"), NormalizedCut())
+    assert labels[-1] == 0
+    assert len(np.unique(labels[labels > 0])) == 1
+
+
 def test_canopy_cover_is_low_around_a_lone_tree_and_high_in_a_closed_canopy():
     from sylva.core.segment.ncut.graph import canopy_cover_at_tops
 

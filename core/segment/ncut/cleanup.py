@@ -227,7 +227,8 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
 
 
 def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_points: np.ndarray,
-                reach: float, steep=None, apart: float = 0.0, scale: float = 1.0, max_height=None) -> np.ndarray:
+                reach: float, steep=None, apart: float = 0.0, scale: float = 1.0, max_height=None,
+                own=None) -> np.ndarray:
     """Trees of fewer than ``min_points[id]`` points merged into the tree within ``reach`` crown radii
     whose top is nearest (as :func:`within_crown_reach`); with none in reach their points are
     no tree (0): a handful of points apart from every crown is not a tree.  But a small tree whose
@@ -241,24 +242,28 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
     neighbours (a sparse scan), outside their crowns, not a leaf clump of one.  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
-    size = np.bincount(labels, minlength=max(int(labels.max()) + 1, len(min_points)))
+    n = max(int(labels.max()) + 1, len(min_points))
+    size = np.bincount(labels, minlength=n)
+    own_size = size if own is None else np.bincount(own[own > 0], minlength=n)[:n]
     need = np.zeros(len(size))
     need[:len(min_points)] = min_points
-    small = (size < need) & (size > 0)
+    small = (own_size < need) & (size > 0)
     small[0] = False
     if not small.any():
         return labels
     tid, txy, th = label_tops(xy, height, labels)
     big = ~small[tid]
+    lone = np.flatnonzero(~big)
+    reached = np.zeros(len(lone), dtype=bool)
     if big.any():
         # the small trees with a tree within reach, none of them as high: the tallest crowns around
-        lone = np.flatnonzero(~big)
         k = min(8, int(big.sum()))
         dd, jj = cKDTree(txy[big]).query(txy[lone], k=k)
         dd, jj = dd.reshape(len(lone), k), jj.reshape(len(lone), k)
         inside = dd <= reach * crown_radius_m(th[big][jj])
+        reached = inside.any(axis=1)
         as_high = inside & (th[big][jj] >= th[lone][:, None] - TOP_TOLERANCE_M)
-        small[tid[lone[inside.any(axis=1) & ~as_high.any(axis=1)]]] = False
+        small[tid[lone[reached & ~as_high.any(axis=1)]]] = False
         if steep is not None and apart > 0:
             # a steep apex farther than `apart` crown radii from every tree as high: a narrow top of its own
             cap = np.full(len(th), np.inf) if max_height is None else max_height[tid]
@@ -267,6 +272,9 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
             known = tid[lone] < len(steep)
             alone[known] = steep[tid[lone][known]]
             small[tid[lone[alone & ~beside.any(axis=1)]]] = False
+    # a small tree with no tree within reach is judged with the crown points no tree took that were
+    # attached to it (``labels`` against ``own``): a spire over the lower crown a sparse scan cut off
+    small[tid[lone[~reached & (size[tid[lone]] >= need[tid[lone]])]]] = False
     bad = np.flatnonzero(small[labels])
     return _reassign(xy, height, labels, bad, tid[big], txy[big], th[big], reach, 0)
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import ParameterError
+from ...noise import ISOLATION_M
 from ...presets import apply_preset
 from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
@@ -97,7 +98,8 @@ class NormalizedCut:
     (:class:`sylva.core.tops.SteepApex`): a maximum of this narrow window is a
     top too when the canopy drops at least ``apex_slope`` m per m from it in
     ``apex_sectors`` of 8 directions (conifer tips overtopped on one side by
-    a neighbour); ``apex_window_m`` 0 turns the rule off.
+    a neighbour); ``apex_window_m`` 0 turns the rule off.  ``apex_slope`` also
+    tells the tip of a steep crown in a sparse scan from noise (step 3).
     ``merge_ncut``, ``merge_dip``: two regions whose best two-way cut costs more
     than ``merge_ncut`` (Eq. 1) *and* whose crowns dip between their tops by less
     than ``merge_dip`` x the lower top's height are one tree.
@@ -214,7 +216,7 @@ class NormalizedCut:
                 and 0 <= self.apex_window_m < float("inf") and 0 < self.top_window_m < float("inf")):
             raise ParameterError("NormalizedCut: top_window_points, top_window_crown and apex_window_m must be "
                                  ">= 0, top_window_m positive and finite")
-        if self.apex_window_m > 0 and not (0 < self.apex_slope < float("inf") and 1 <= self.apex_sectors <= 8):
+        if not 0 < self.apex_slope < float("inf") or (self.apex_window_m > 0 and not 1 <= self.apex_sectors <= 8):
             raise ParameterError("NormalizedCut: apex_slope must be > 0 and finite and apex_sectors in 1..8")
 
     def windows(self, cloud: PointCloud, local: np.ndarray, height: np.ndarray,
@@ -253,6 +255,7 @@ class NormalizedCut:
             density = local_canopy_density(cloud, local, crown)
         sel = np.flatnonzero(crown)
         search = sel[column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
+        search = search[~self._isolated(cloud, local, crown, search, density)]
         subset = cloud.subset(search)
         rule = None
         if self.apex_window_m > 0 and self.apex_window_m < self.top_window_m:
@@ -262,6 +265,7 @@ class NormalizedCut:
             wide, apex = self.windows(cloud, local, height, crown, density, share)
             return find_tree_tops(subset, window=FixedWindow(float(self.top_window_m)),
                                   min_height_m=self.min_height_m, progress=prog, cancelled=cancelled,
+                                  isolation_m=None,
                                   apex=rule, diameters=wide[search],
                                   apex_diameters=apex[search] if rule is not None else None)
 
@@ -278,6 +282,30 @@ class NormalizedCut:
                                       self.crown_scale, lambda xy, h: self._cover(local, height, crown, xy, h))]
         more = TreeTops(cloud.xyz[apex], height[apex], np.arange(1, len(apex) + 1, dtype=np.int64), cloud.crs)
         return union_tops(tops, more, np.ones(len(apex), dtype=bool))
+
+    def _isolated(self, cloud, local, crown, search, density):
+        """Mask of the ``search`` points that are noise, not a tree top: no other crown point
+        within ``ISOLATION_M`` in 3-D (:func:`sylva.core.noise.isolated_points`), nor, where the
+        scan is sparse, below them as steeply as a conifer's apex drops (at least ``apex_slope`` x
+        the horizontal distance) within ``2 * apex_slope`` pulse spacings (1 / sqrt of the canopy
+        density around the point).
+
+        A conifer's highest return stands above the next one by the crown's slope times the
+        pulse spacing: at 2 points/m2 a spire rising 3-7 m per metre puts 2-5 m between them,
+        and the fixed 2 m test threw the tops of steep crowns away.  A stray return beside a
+        crown, or over ground, is still noise (Sylva, not in Hu et al.; figures in step 3 of the
+        package docstring)."""
+        from ...noise import isolated_points
+
+        alone = isolated_points(cloud, ISOLATION_M, among=crown, loc=local)[search]
+        cand = np.flatnonzero(alone)
+        reach = 2.0 * self.apex_slope / np.sqrt(np.maximum(density[search[cand]], 1e-6))
+        sparse = reach > ISOLATION_M
+        if sparse.any():
+            cand, reach = cand[sparse], reach[sparse]
+            alone[cand[_steep_support(local, np.flatnonzero(crown), local[search[cand]], reach,
+                                      self.apex_slope)]] = False
+        return alone
 
     def _cover(self, local, height, crown, top_xy, top_height):
         """The canopy cover around each top (local metres) within ``COVER_REACH`` of its allometric
@@ -336,7 +364,8 @@ class NormalizedCut:
         if found and self.understory_points > 0:
             # crowns under the canopy that no surface top reaches: trees of their own
             extra, extra_h = topless_crowns(graph, height[crown], local[crown, :2], top_voxel,
-                                            self.understory_points, self.understory_extent_m)
+                                            self.understory_points, self.understory_extent_m, top_height,
+                                            crown_radius_m(top_height))
             top_voxel = np.r_[top_voxel, extra]
             top_id = np.r_[top_id, top_id.max(initial=0) + 1 + np.arange(len(extra))]
             top_height = np.r_[top_height, extra_h]
@@ -390,17 +419,19 @@ class NormalizedCut:
         if cover is not None:
             max_height = np.full(int(top_id.max()) + 1, np.inf)
             max_height[top_id[cover >= CLOSED_COVER]] = CLOSED_HEIGHT_M
+        # crown points no top reached (graph pieces beyond radius_m of every tree, under no crown): the
+        # tree within crown reach whose top is nearest, as within_crown_reach places strays; before
+        # trees are judged by their size (the lower crown of a spire a sparse scan cut off is its own)
+        own = labels
+        if self.crown_reach > 0:
+            labels = attach_free(xy, height, labels, np.flatnonzero(crown & (labels == 0)),
+                                 self.crown_reach * self.crown_scale)
         if self.min_tree_points > 1:
             need = np.zeros(int(top_id.max()) + 1)
             need[top_id] = min_points
             labels = merge_small(local[:, :2], height, labels, need, max(self.crown_reach, 1.0) * self.crown_scale,
                                  steep=steep_id, apart=self.open_reach, scale=self.crown_scale,
-                                 max_height=max_height)
-        # crown points no top reached (graph pieces beyond radius_m of every tree, under no crown): the
-        # tree within crown reach whose top is nearest, as within_crown_reach places strays
-        if self.crown_reach > 0:
-            labels = attach_free(xy, height, labels, np.flatnonzero(crown & (labels == 0)),
-                                 self.crown_reach * self.crown_scale)
+                                 max_height=max_height, own=own)
         # a top that rises nowhere above the crown it touches: a leader or flank of a flat crown
         if self.merge_plateau > 0:
             labels = merge_plateaus(xy, height, labels, bounds, self.merge_plateau,
@@ -414,3 +445,40 @@ class NormalizedCut:
         voxel_label[vox[o][last]] = labels[pts[o][last]]
         reach = APEX_REACH * crown_radius_m(top_height, self.crown_scale)
         return apex_near_top(xy, elev, labels, graph.xyz[top_voxel, :2], voxel_label[top_voxel], reach)
+
+
+def _steep_support(local: np.ndarray, crown_idx: np.ndarray, q: np.ndarray, reach: np.ndarray,
+                   slope: float) -> np.ndarray:
+    """Per point of ``q`` (local x, y, z): whether a crown point within ``reach`` of it (3-D) lies
+    below it at least ``slope`` times as far down as across (a steep crown's next return under its
+    tip).  Only the crown points in the grid cells around ``q`` are searched."""
+    from scipy.spatial import cKDTree
+
+    cell = float(reach.max())
+    lo = q[:, :2].min(axis=0) - cell
+    span = q[:, :2].max(axis=0) + cell - lo
+    cell = max(cell, float(span.max()) / 4096.0)
+    nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
+    near_cell = np.zeros(nx * ny, dtype=bool)
+    ij = np.floor((q[:, :2] - lo) / cell).astype(np.int64)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            i, j = ij[:, 0] + dx, ij[:, 1] + dy
+            ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+            near_cell[i[ok] * ny + j[ok]] = True
+    cij = np.floor((local[crown_idx, :2] - lo) / cell).astype(np.int64)
+    inside = (cij[:, 0] >= 0) & (cij[:, 0] < nx) & (cij[:, 1] >= 0) & (cij[:, 1] < ny)
+    inside[inside] = near_cell[cij[inside, 0] * ny + cij[inside, 1]]
+    pts = local[crown_idx[inside]]
+    out = np.zeros(len(q), dtype=bool)
+    if len(pts) == 0:
+        return out
+    near = cKDTree(pts).query_ball_point(q, reach)
+    row = np.repeat(np.arange(len(q)), [len(v) for v in near])
+    if len(row) == 0:
+        return out
+    other = pts[np.concatenate(near).astype(np.int64)]
+    drop = q[row, 2] - other[:, 2]
+    steep = (drop > 0) & (drop >= slope * np.hypot(*(other[:, :2] - q[row, :2]).T))
+    out[row[steep]] = True
+    return out
