@@ -239,7 +239,10 @@ def merge_small(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, min_poin
     :class:`~sylva.core.tops.SteepApex` test: the canopy drops steeply around it) farther than ``apart``
     crown radii (:func:`crown_radius_m` times ``scale``, the neighbour judged at most ``max_height[id]``
     high) from every tree as high: the narrow top of a conifer whose lower crown the graph gave to its
-    neighbours (a sparse scan), outside their crowns, not a leaf clump of one.  Sylva, not in Hu et al."""
+    neighbours (a sparse scan), outside their crowns, not a leaf clump of one.  ``own``: the labels
+    before the crown points no top reached were attached (:func:`attach_free`); a tree is small by
+    its own points, but one with no tree within reach by ``labels``' (a spire over the lower crown a
+    sparse scan cut off from it, attached to it).  Sylva, not in Hu et al."""
     if not (labels > 0).any():
         return labels
     n = max(int(labels.max()) + 1, len(min_points))
