@@ -297,7 +297,7 @@ def test_a_suppressed_tree_under_the_canopy_is_a_tree_of_its_own():
 def test_the_skirt_of_a_steep_crown_cut_off_by_a_sparse_scan_is_not_a_tree():
     """A steep conifer crown whose returns lie farther apart up the flank than the graph's height_m
     (here: none between 15 and 17.5 m) falls into two components: the top and the skirt around the
-    stem.  The skirt is centred under the apex (graph.LOWER_CROWN_REACH): the tree's lower crown,
+    stem.  The skirt is centred under the apex (``lower_crown_reach``): the tree's lower crown,
     not an understory tree; a suppressed tree beside a dominant still is one."""
     from sylva.core.segment.ncut import graph as G
 
@@ -310,11 +310,11 @@ def test_the_skirt_of_a_steep_crown_cut_off_by_a_sparse_scan_is_not_a_tree():
     labels = segment_trees(cloud, NormalizedCut())
     assert len(np.unique(labels[labels > 0])) == 1
     assert np.mean(labels[skirt] == labels[truth == 1].max()) > 0.9
-    # the rule off (no tops' crown radii given): the skirt passes for an understory tree
-    from unittest import mock
-    with mock.patch.object(G, "LOWER_CROWN_REACH", 0.0):
-        off = segment_trees(cloud, NormalizedCut())
+    # the rule off (as in the "open-grown" preset): the skirt passes for an understory tree
+    off = segment_trees(cloud, NormalizedCut(lower_crown_reach=0.0))
     assert len(np.unique(off[off > 0])) == 2
+    assert NormalizedCut(growth="open-grown").lower_crown_reach == 0.0
+    assert NormalizedCut().lower_crown_reach == G.LOWER_CROWN_REACH
     # a suppressed tree beside a dominant (its crown centred about one crown radius away) stays
     cloud, under = _with_understory()
     labels = segment_trees(cloud, NormalizedCut())

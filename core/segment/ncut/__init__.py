@@ -129,7 +129,9 @@ Steps
    the most a stand loses 0.004 (mixed open at 20 and 50); seed 1 +0.096
    summed (tall open at 20 0.891 -> 0.914; mixed open at 50 -0.008); 30
    degree slopes +0.009; MixedConifer, autzen_trim and the sample
-   unchanged; the "open-grown" preset's dense parkland -0.008 to -0.016.
+   unchanged.  The "open-grown" preset turns it off (``lower_crown_reach``
+   0): its broad crowns are no spires, and its dense parkland at 2-50
+   points/m2 lost 0.008 to 0.010 with it.
 4. **Cuts (Eq. 1).** The problem is split into independent two-tree
    sub-problems.  The NCut of the start boundary of every pair of touching
    regions is computed at once (edge sums); pairs whose start boundary

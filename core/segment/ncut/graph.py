@@ -386,17 +386,18 @@ def top_voxels(graph: VoxelGraph, tops, params: "NormalizedCut"):
 APEX_CENTRED = 0.25
 
 #: A topless crown centred within this many crown radii of a taller tree's apex is that tree's lower
-#: crown (the skirt of a steep conifer crown that a sparse scan left apart from its top), not a tree.
+#: crown (the skirt of a steep conifer crown that a sparse scan left apart from its top), not a tree
+#: (``NormalizedCut.lower_crown_reach``'s default).
 LOWER_CROWN_REACH = 0.6
 
 
 def topless_crowns(graph: VoxelGraph, height: np.ndarray, xy: np.ndarray, top_voxel: np.ndarray,
                    min_points: int, min_extent_m: float, top_height: np.ndarray = None,
-                   top_radius: np.ndarray = None):
+                   top_radius: np.ndarray = None, lower_reach: float = LOWER_CROWN_REACH):
     """(voxel, height) of the highest point of every connected component of the graph that holds no top,
     at least ``min_points`` crown points, spans at least ``min_extent_m`` horizontally, has
     its highest point near its centre (:data:`APEX_CENTRED`) and, given the tops' heights and
-    crown radii, is not centred under a taller tree's apex (:data:`LOWER_CROWN_REACH`).
+    crown radii, is not centred under a taller tree's apex (``lower_reach``).
 
     ``height`` and ``xy`` are those of the crown points (``graph.point_voxel`` order).  The tops
     are maxima of the canopy surface; a crown the graph joins to none of them (no edge within
@@ -409,7 +410,7 @@ def topless_crowns(graph: VoxelGraph, height: np.ndarray, xy: np.ndarray, top_vo
     apart up the flank than the graph's ``height_m`` (a conifer crown rising 4-7 m per metre
     out, 5 points/m2), the crown's lower part is a component of its own, as wide as a tree and
     highest at its inner rim.  A topless component whose points' centroid lies within
-    :data:`LOWER_CROWN_REACH` x ``top_radius`` of a taller tree's apex (a top higher than the
+    ``lower_reach`` (:data:`LOWER_CROWN_REACH`) x ``top_radius`` of a taller tree's apex (a top higher than the
     component and than every other top within its own crown radius: not a bump on a crown's
     flank) is therefore that tree's lower crown, left to the clean-up; a suppressed tree stands
     beside its dominant, its crown centred about one crown radius from the dominant's apex."""
@@ -434,29 +435,28 @@ def topless_crowns(graph: VoxelGraph, height: np.ndarray, xy: np.ndarray, top_vo
     extent = (np.maximum.reduceat(p, starts) - np.minimum.reduceat(p, starts)).max(axis=1)
     centre = np.add.reduceat(p, starts) / count[pc[first], None]
     keep = (extent >= min_extent_m) & (np.hypot(*(xy[first] - centre).T) <= APEX_CENTRED * extent)
-    if top_radius is not None and keep.any() and len(top_voxel):
+    if top_radius is not None and lower_reach > 0 and keep.any() and len(top_voxel):
         keep[keep] = ~_under_apex(centre[keep], height[first[keep]], graph.xyz[top_voxel, :2],
-                                  top_height, top_radius)
+                                  top_height, top_radius, lower_reach)
     first = first[keep]
     first = first[np.lexsort((xy[first, 1], xy[first, 0], -height[first]))]
     return graph.point_voxel[first].astype(np.int64), height[first]
 
 
 def _under_apex(centre: np.ndarray, apex_height: np.ndarray, top_xy: np.ndarray,
-                top_height: np.ndarray, top_radius: np.ndarray) -> np.ndarray:
-    """Per component (centroid, highest point): whether it is centred within
-    :data:`LOWER_CROWN_REACH` crown radii of a taller tree's apex (a top higher than every other
-    top within its crown radius, and higher than the component)."""
+                top_height: np.ndarray, top_radius: np.ndarray, reach: float) -> np.ndarray:
+    """Per component (centroid, highest point): whether it is centred within ``reach`` crown radii
+    of a taller tree's apex (a top higher than every other top within its crown radius, and higher
+    than the component)."""
     tops = cKDTree(top_xy)
     pairs = tops.sparse_distance_matrix(tops, float(top_radius.max()), output_type="ndarray")
     k, j, d = pairs["i"], pairs["j"], pairs["v"]
     bump = (top_height[j] < top_height[k]) & (d < top_radius[k])     # j lies in the crown of k, lower
     apex = np.ones(len(top_xy), dtype=bool)
     apex[j[bump]] = False
-    near = cKDTree(centre).sparse_distance_matrix(tops, LOWER_CROWN_REACH * float(top_radius.max()),
-                                                  output_type="ndarray")
+    near = cKDTree(centre).sparse_distance_matrix(tops, reach * float(top_radius.max()), output_type="ndarray")
     c, t, d = near["i"], near["j"], near["v"]
-    hit = apex[t] & (top_height[t] > apex_height[c]) & (d < LOWER_CROWN_REACH * top_radius[t])
+    hit = apex[t] & (top_height[t] > apex_height[c]) & (d < reach * top_radius[t])
     out = np.zeros(len(centre), dtype=bool)
     out[c[hit]] = True
     return out
