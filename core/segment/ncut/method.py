@@ -28,6 +28,11 @@ from .layers import lower_layer_apexes
 #: Tops are searched among the highest points of columns this wide (d_s / 2).
 TOP_CELL_M = 0.35
 
+#: The sparsest canopy (first returns per m2) whose pulse spacing widens the search for a steep tip's
+#: next return (:meth:`NormalizedCut._isolated`): a spacing of at most 1.4 m, a reach of at most 8.5 m
+#: at ``apex_slope`` 3, so a stray return over open ground searches a bounded neighbourhood.
+SPARSEST_CANOPY_PER_M2 = 0.5
+
 
 #: A tree holds at least min_tree_points points, or the canopy first returns of this many m²
 #: at the scan's density around its top when fewer (a 1.25 m crown radius: 10 points at 2 per m²).
@@ -293,7 +298,7 @@ class NormalizedCut:
         within ``ISOLATION_M`` in 3-D (:func:`sylva.core.noise.isolated_points`), nor, where the
         scan is sparse, below them as steeply as a conifer's apex drops (at least ``apex_slope`` x
         the horizontal distance) within ``2 * apex_slope`` pulse spacings (1 / sqrt of the canopy
-        density around the point).
+        density around the point; no wider than at ``SPARSEST_CANOPY_PER_M2``).
 
         A conifer's highest return stands above the next one by the crown's slope times the
         pulse spacing: at 2 points/m2 a spire rising 3-7 m per metre puts 2-5 m between them,
@@ -304,7 +309,7 @@ class NormalizedCut:
 
         alone = isolated_points(cloud, ISOLATION_M, among=crown, loc=local)[search]
         cand = np.flatnonzero(alone)
-        reach = 2.0 * self.apex_slope / np.sqrt(np.maximum(density[search[cand]], 1e-6))
+        reach = 2.0 * self.apex_slope / np.sqrt(np.maximum(density[search[cand]], SPARSEST_CANOPY_PER_M2))
         sparse = reach > ISOLATION_M
         if sparse.any():
             cand, reach = cand[sparse], reach[sparse]
