@@ -410,9 +410,11 @@ def _steep(xy: np.ndarray, h: np.ndarray, cand: np.ndarray, rule: SteepApex) -> 
 def steep_tops(xy: np.ndarray, h: np.ndarray, top_xy: np.ndarray, top_h: np.ndarray,
                rule: SteepApex) -> np.ndarray:
     """Mask of the tops (``top_xy``, ``top_h``) the canopy of the points (``xy``, ``h``) falls away
-    from steeply, by ``rule``'s sectors and slope (the test of :class:`SteepApex`)."""
-    n = len(xy)
-    return _steep(np.r_[xy, top_xy], np.r_[h, top_h], np.arange(n, n + len(top_xy)), rule)
+    from steeply, by ``rule``'s sectors and slope (the test of :class:`SteepApex`).  Only the points'
+    own surface joins the tops: its column maxima are those of all the points (same tie rule)."""
+    surf = _cell_maxima(xy, h, steep_column_m(rule.inner_m))
+    n = len(surf)
+    return _steep(np.r_[xy[surf], top_xy], np.r_[h[surf], top_h], np.arange(n, n + len(top_xy)), rule)
 
 
 def _tops_from_points(cloud: PointCloud, window: Window, min_height_m: float,

@@ -100,6 +100,20 @@ def _sketch_layers(folder: Path) -> dict:
     return out
 
 
+def _apex_edge() -> None:
+    """The clean-up step the sample's corner does not reach (a point of a crown's edge above its
+    tree's apex, beside a taller neighbour: :func:`~sylva.core.segment.ncut.cleanup.apex_near_top`),
+    on arrays of the types a segmentation gives it."""
+    import numpy as np
+
+    from ..core.segment.ncut.cleanup import apex_near_top
+
+    local = np.array([[0.0, 0.0, 10.0], [3.0, 0.0, 12.0], [3.5, 0.0, 11.9], [5.0, 0.0, 14.0]])
+    labels = np.array([1, 1, 2, 2], dtype=np.int32)
+    apex_near_top(local[:, :2], local[:, 2], labels, np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([1, 2]),
+                  np.array([1.0, 1.0]))
+
+
 def warm_up(progress: Optional[Callable[[float, str], None]] = None,
             cancelled: Optional[Callable[[], bool]] = None) -> dict:
     """Run every algorithm on a corner of the sample (compiling and caching the kernels); write the stamp.
@@ -156,6 +170,7 @@ def warm_up(progress: Optional[Callable[[float, str], None]] = None,
             args = cli.convert(alg, raw)
             result = alg.run(args, Feedback())
             cli.write_outputs(alg, args, result)
+        _apex_edge()
     kernels = jit.kernels()
     used = [k for k in kernels if k.compiled is not None and getattr(k.compiled, "signatures", [True])]
     summary = {"seconds": round(time.perf_counter() - t0, 1), "compile_seconds": round(jit.compile_seconds() - c0, 1),

@@ -362,13 +362,13 @@ def test_the_tip_of_a_steep_crown_in_a_sparse_scan_is_its_top():
 
 
 def test_canopy_cover_is_low_around_a_lone_tree_and_high_in_a_closed_canopy():
-    from sylva.core.segment.ncut.graph import canopy_cover_at_tops
+    from sylva.core.segment.ncut.graph import canopy_columns, canopy_cover
 
     def cover(trees, at):
         cloud, _ = cones(trees, (60, 60))
         loc, h = cloud.local_xyz(), cloud.attrs["height"]
         xy = np.asarray(at, dtype=float)[None, :] + loc[:, :2].min(axis=0)
-        return canopy_cover_at_tops(loc, h, h >= 2.0, xy, np.array([20.0]), np.array([10.0]))[0]
+        return canopy_cover(canopy_columns(loc, h, h >= 2.0), xy, np.array([20.0]), np.array([10.0]))[0]
 
     assert cover([(30.0, 30.0, 20.0, 4.0)], (30.0, 30.0)) < 0.5
     grid = [(x, y, 20.0, 4.0) for x in np.arange(4.0, 60.0, 6.0) for y in np.arange(4.0, 60.0, 6.0)]

@@ -68,7 +68,7 @@ Steps
    (0.4) x the crown width of Popescu & Wynne's (2004) allometry at the
    point's height (their variable window, narrowed: a bump on a broad crown
    is not a top, a neighbour is rarely nearer).  Where the canopy is closed
-   (:func:`canopy_cover_at_tops` at least ``CLOSED_COVER``, 0.75, within
+   (:func:`canopy_cover` at least ``CLOSED_COVER``, 0.75, within
    ``COVER_REACH`` crown radii) the neighbours have narrowed the crowns and a
    neighbour is nearer: the maxima of a window whose crown share shrinks to
    ``closed_window`` (0.4) x ``top_window_crown``, 0.16 x the crown width,
@@ -184,7 +184,7 @@ Steps
    height (``merge_plateau``) within ``PLATEAU_REACH`` crown radii are one
    crown too when both are rounded (not a steep apex: two conifer leaders
    this close are two trees) and the canopy around the higher is not closed
-   (:func:`canopy_cover_at_tops` below ``CLOSED_COVER``, 0.75: in a closed
+   (:func:`canopy_cover` below ``CLOSED_COVER``, 0.75: in a closed
    canopy two crowns of one height do stand this close; on MixedConifer,
    around whose tops the canopy covers 0.8, lidR holds 6 of the 7 pairs
    the rule would join without this test in two trees, and both of the 2
@@ -215,7 +215,7 @@ Steps
    grown in stands, and a tree grown in the open has a wider crown of the
    same height (the open-grown crown width of Krajicek, Brinkman & Gingrich
    1961's crown competition factor).  Where the canopy around the higher top
-   is open (:func:`canopy_cover_at_tops`: under ``open_cover`` (0.6) of the
+   is open (:func:`canopy_cover`: under ``open_cover`` (0.6) of the
    1 m columns within 2 crown radii, at most 10 m, reach half its height;
    about 0.55 in the open stands of the suite, 0.84 in the dense ones) the
    merge reaches ``open_reach`` (0.9) crown radii, for a rounded lower top

@@ -31,9 +31,7 @@ def label_tops(xy, height, labels):
     :func:`sylva.core.tops.apex_points`; the same point on level ground; ties: lowest x, then y,
     then the first point; never the point order alone, which depends on the tiling).  One pass
     (:func:`_label_maxima`), not a sort of every labelled point."""
-    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64),
-                        np.ascontiguousarray(height, dtype=np.float64),
-                        np.ascontiguousarray(labels, dtype=np.int64), int(labels.max(initial=0)) + 1)
+    top = _label_maxima(xy, height, labels, int(labels.max(initial=0)) + 1)
     return labels[top], xy[top], height[top]
 
 
@@ -47,8 +45,7 @@ def tree_relative(xy, elev, height, labels):
     2015).  On level ground they are the heights above ground.  Points of no tree keep their
     height."""
     size = int(labels.max(initial=0)) + 1
-    top = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(elev, dtype=np.float64),
-                        np.ascontiguousarray(labels, dtype=np.int64), size)
+    top = _label_maxima(xy, elev, labels, size)
     gnd = np.zeros(size)
     gnd[labels[top]] = elev[top] - height[top]
     return np.where(labels > 0, elev - gnd[labels], height), gnd
@@ -182,8 +179,7 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
     top_xy, top_label, reach = top_xy[keep], top_label[keep], reach[keep]
     # the trees whose highest point lies beyond the reach of all their tops (few): only they are judged
     size = int(labels.max()) + 1
-    apex = _label_maxima(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(elev, dtype=np.float64),
-                         np.ascontiguousarray(labels, dtype=np.int64), size)
+    apex = _label_maxima(xy, elev, labels, size)
     at = np.full((size, 2), np.nan)
     at[labels[apex]] = xy[apex]
     near = np.zeros(size, dtype=bool)
@@ -207,12 +203,7 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
     whole = np.full(size, -np.inf)
     whole[labels[apex]] = elev[apex]
     # the labelled points of the APEX_EDGE_M cells around the high points (a 3 x 3 block each)
-    cell = np.floor(xy / APEX_EDGE_M).astype(np.int64)
-    cell -= cell.min(axis=0) - 1
-    rows = int(cell[:, 1].max()) + 2
-    step = np.array([-1, 0, 1])
-    around = (cell[high, 0, None, None] + step[:, None]) * rows + cell[high, 1, None, None] + step
-    other = np.flatnonzero((labels > 0) & np.isin(cell[:, 0] * rows + cell[:, 1], around.ravel()))
+    other = np.flatnonzero(_around_cells(xy, labels, high, APEX_EDGE_M))
     kd = cKDTree(xy[other])
     out = labels.copy()
     for p, idx in zip(high, kd.query_ball_point(xy[high], APEX_EDGE_M)):
@@ -223,6 +214,24 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
         q = idx[np.argmin(np.hypot(xy[idx, 0] - xy[p, 0], xy[idx, 1] - xy[p, 1]))]
         if whole[labels[q]] >= elev[p]:
             out[p] = labels[q]
+    return out
+
+
+@njit
+def _around_cells(xy, labels, high, cell):
+    """Mask of the labelled points in the 3 x 3 blocks of ``cell`` columns around the points ``high``
+    (a hash set of the blocks' columns: one pass, whatever the extent)."""
+    marked = set()
+    for p in high:
+        i = int(np.floor(xy[p, 0] / cell))
+        j = int(np.floor(xy[p, 1] / cell))
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                marked.add((i + di, j + dj))
+    out = np.zeros(len(labels), dtype=np.bool_)
+    for k in range(len(labels)):
+        if labels[k] > 0:
+            out[k] = (int(np.floor(xy[k, 0] / cell)), int(np.floor(xy[k, 1] / cell))) in marked
     return out
 
 
@@ -323,10 +332,7 @@ def merge_off_centre(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, ste
         height, _ = tree_relative(xy, elev, height, labels)
     tid, txy, th, top_h, r, inside = _tops_within(xy, height, labels, bounds, scale)
     size = len(top_h)
-    w, sx, sy, sq = _crown_moments(np.ascontiguousarray(xy[:, 0], dtype=np.float64),
-                                   np.ascontiguousarray(xy[:, 1], dtype=np.float64),
-                                   np.ascontiguousarray(height, dtype=np.float64),
-                                   np.ascontiguousarray(labels, dtype=np.int64), top_h, CROWN_TOP_SHARE)
+    w, sx, sy, sq = _crown_moments(xy[:, 0], xy[:, 1], height, labels, top_h, CROWN_TOP_SHARE)
     w, sx, sy, sq = w[tid], sx[tid], sy[tid], sq[tid]
     cx, cy = sx / w, sy / w
     ms = np.maximum(sq / w - cx * cx - cy * cy, 0.0)

@@ -36,7 +36,7 @@ PLATEAU_REACH = 1.3
 UNDER_CROWN = 0.5
 
 #: The canopy around a top is closed where it covers this share of the ground
-#: (:func:`~.graph.canopy_cover_at_tops`): there two tops of one height are one
+#: (:func:`~.graph.canopy_cover`): there two tops of one height are one
 #: crown only across a saddle of the graph (step 4 of :mod:`sylva.core.segment.ncut`).
 CLOSED_COVER = 0.75
 

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from ...cloud import PointCloud
 from ...jit import njit
+from ...kernels.grid import grid_cells
 
 
 # --------------------------------------------------------------------------- voxel graph
@@ -89,7 +90,7 @@ def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
     groups = np.cumsum([0] + [f.shape[1] for f in features]).astype(np.int64)
     col = ukey // nz
     ucol, cstart = np.unique(col, return_index=True)
-    indptr, indices, data, a, b, w = _lattice_graph(
+    indptr, indices, data, edges, w = _lattice_graph(
         vxyz, np.ascontiguousarray(feat), groups, ijk[:, 2], ucol, np.r_[cstart, m].astype(np.int64),
         int(ny), float(pitch), float(params.radius_m), float(params.height_m),
         float(params.sigma_h_m), float(params.sigma_v_m))
@@ -100,7 +101,7 @@ def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
     W = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     W.has_sorted_indices = True
     return VoxelGraph(xyz=vxyz, ijk=ijk, ij0=ij0, point_voxel=inv, W=W,
-                      edges=np.column_stack([a, b]), weights=w)
+                      edges=edges, weights=w)
 
 
 @njit
@@ -113,7 +114,7 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
     Voxels come sorted by (column, layer).  The edges (a < b) are found in
     that order, then the symmetric CSR is filled row by row (the partners
     before a voxel, then those after it), so no sort is needed.  Returns
-    (indptr, indices, data) and the edge list a, b with its weights w.
+    (indptr, indices, data) and the edge list (e, 2) with its weights w.
     ``feat``: per-voxel I and C features already divided by their scales,
     columns ``groups[g]:groups[g + 1]`` for feature g (the L2 norm of each
     feature's difference adds to the exponent, Eq. 2)."""
@@ -124,8 +125,7 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
     r2 = radius * radius
     ng = len(groups) - 1
     cap = max(16, 8 * m)
-    ea = np.empty(cap, dtype=np.int64)
-    eb = np.empty(cap, dtype=np.int64)
+    ed = np.empty((cap, 2), dtype=np.int64)
     ew = np.empty(cap, dtype=np.float64)
     ne = 0
     side = 2 * reach + 1
@@ -179,40 +179,37 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
                         expo += np.sqrt(f2)
                     if ne == cap:
                         cap *= 2
-                        grown = np.empty(cap, dtype=np.int64)
-                        grown[:ne] = ea[:ne]
-                        ea = grown
-                        grown = np.empty(cap, dtype=np.int64)
-                        grown[:ne] = eb[:ne]
-                        eb = grown
+                        grown = np.empty((cap, 2), dtype=np.int64)
+                        grown[:ne] = ed[:ne]
+                        ed = grown
                         grown_w = np.empty(cap, dtype=np.float64)
                         grown_w[:ne] = ew[:ne]
                         ew = grown_w
-                    ea[ne] = i
-                    eb[ne] = j
+                    ed[ne, 0] = i
+                    ed[ne, 1] = j
                     ew[ne] = np.exp(-expo)
                     ne += 1
-    ea, eb, ew = ea[:ne], eb[:ne], ew[:ne]
+    ed, ew = ed[:ne], ew[:ne]
     indptr = np.zeros(m + 1, dtype=np.int64)
     for e in range(ne):
-        indptr[ea[e] + 1] += 1
-        indptr[eb[e] + 1] += 1
+        indptr[ed[e, 0] + 1] += 1
+        indptr[ed[e, 1] + 1] += 1
     for i in range(m):
         indptr[i + 1] += indptr[i]
     fill = indptr[:-1].copy()
     indices = np.empty(2 * ne, dtype=np.int32)
     data = np.empty(2 * ne, dtype=np.float64)
     for e in range(ne):                  # partners before the row's voxel, ascending
-        r = eb[e]
-        indices[fill[r]] = ea[e]
+        r = ed[e, 1]
+        indices[fill[r]] = ed[e, 0]
         data[fill[r]] = ew[e]
         fill[r] += 1
     for e in range(ne):                  # then those after it, ascending
-        r = ea[e]
-        indices[fill[r]] = eb[e]
+        r = ed[e, 0]
+        indices[fill[r]] = ed[e, 1]
         data[fill[r]] = ew[e]
         fill[r] += 1
-    return indptr, indices, data, ea, eb, ew
+    return indptr, indices, data, ed, ew
 
 
 def coord_min(a: np.ndarray) -> np.ndarray:
@@ -233,7 +230,7 @@ def grid_fits(shape, n: int) -> bool:
 
 
 def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
-    """Indices of the highest point of every ``cell_m`` column (ties: the lowest index).
+    """Indices of the highest point of every ``cell_m`` column (ties: the lowest index), ascending.
 
     A tree top is always such a point, so the local-maximum search only needs
     these (a canopy-surface thinning; cells narrower than the window keep the
@@ -242,33 +239,38 @@ def column_maxima(xy: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
     the points' extent, so any tiling gives the same columns."""
     if len(xy) == 0:
         return np.zeros(0, dtype=np.int64)
+    pick = _column_maxima_grid(xy, z, float(cell_m), 8 * len(xy) + 1_000_000)
+    if len(pick):           # a grid of cells is cheaper than two sorts
+        return pick
     ij = np.floor(xy / cell_m).astype(np.int64)
     ij -= coord_min(ij)
-    ny = int(ij[:, 1].max()) + 1
-    key = ij[:, 0] * ny + ij[:, 1]
-    size = int(ij[:, 0].max() + 1) * ny
-    if size <= 8 * len(key) + 1_000_000:      # a grid of cells is cheaper than two sorts
-        return _cell_maxima(key, np.ascontiguousarray(z, dtype=np.float64), size)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     order = np.argsort(-z, kind="stable")
     _, first = np.unique(key[order], return_index=True)
     return np.sort(order[first])
 
 
 @njit
-def _cell_maxima(key, z, size):
-    """Ascending indices of the highest point of each occupied cell 0..size-1 (ties: lowest index)."""
-    best = np.full(size, -1, dtype=np.int64)
-    for i in range(len(key)):
-        b = best[key[i]]
+def _column_maxima_grid(xy, z, cell, max_cells):
+    """:func:`column_maxima` on a dense grid of cells; empty when it would exceed ``max_cells``
+    cells (:func:`~sylva.core.kernels.grid.grid_cells`)."""
+    ix, iy, x0, y0, nx, ny = grid_cells(xy, cell, max_cells)
+    best = np.full(nx * ny, -1, dtype=np.int64)
+    kept = 0
+    for i in range(len(ix)):
+        c = (ix[i] - x0) * ny + (iy[i] - y0)
+        b = best[c]
+        if b < 0:
+            kept += 1
         if b < 0 or z[i] > z[b]:
-            best[key[i]] = i
-    out = np.empty(len(key), dtype=np.int64)
+            best[c] = i
+    out = np.empty(kept, dtype=np.int64)
     k = 0
-    for c in range(size):
+    for c in range(nx * ny):
         if best[c] >= 0:
             out[k] = best[c]
             k += 1
-    return np.sort(out[:k])
+    return np.sort(out)
 
 
 #: Half width (m) of the square neighbourhood of :func:`local_canopy_density`.
@@ -292,26 +294,56 @@ def local_canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray
         sel = crown
     if not sel.any():
         return out
-    ij_all = np.floor(local[:, :2]).astype(np.int64)
-    lo = coord_min(ij_all[sel]) - DENSITY_HALF_WIDTH_M
-    hi = coord_max(ij_all[sel]) + DENSITY_HALF_WIDTH_M
+    sel = np.flatnonzero(sel)
+    lo, hi = (np.array(v) for v in _column_range(local, sel))
+    lo, hi = lo - DENSITY_HALF_WIDTH_M, hi + DENSITY_HALF_WIDTH_M
     shape = tuple((hi - lo + 1).tolist())
     if not grid_fits(shape, n):      # a sparse extent: the whole cloud's mean
         out[:] = canopy_density(cloud, local, crown)
         return out
-    ij = ij_all[sel] - lo
-    counts = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
-    counts = counts.astype(np.float64)
+    i0, j0 = lo.tolist()
+    counts = _column_counts(local, sel, i0, j0, *shape)
     occupied = (counts > 0).astype(np.float64)
     size = 2 * DENSITY_HALF_WIDTH_M + 1
     # box sums as exact integers (uniform_filter of 0/1 and counts, times the box area)
     csum = np.rint(ndimage.uniform_filter(counts, size=size, mode="constant") * size * size)
     osum = np.rint(ndimage.uniform_filter(occupied, size=size, mode="constant") * size * size)
     dens = np.where(osum > 0, csum / np.maximum(osum, 1.0), 1.0)
-    q = ij_all - lo
-    inside = (q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] < shape[0]) & (q[:, 1] < shape[1])
-    out[inside] = dens[q[inside, 0], q[inside, 1]]
-    return np.maximum(out, 1e-3)
+    return np.maximum(_at_columns(local, dens, i0, j0), 1e-3)
+
+
+@njit
+def _column_range(local, sel):
+    """(lowest, highest) 1 m column (floor of x, of y) of the points ``sel``, as two integers each."""
+    i0 = i1 = int(np.floor(local[sel[0], 0]))
+    j0 = j1 = int(np.floor(local[sel[0], 1]))
+    for k in sel:
+        i = int(np.floor(local[k, 0]))
+        j = int(np.floor(local[k, 1]))
+        i0, i1, j0, j1 = min(i0, i), max(i1, i), min(j0, j), max(j1, j)
+    return (i0, j0), (i1, j1)
+
+
+@njit
+def _column_counts(local, sel, i0, j0, nx, ny):
+    """The number of the points ``sel`` in every 1 m column of the nx x ny grid from (i0, j0)."""
+    counts = np.zeros((nx, ny))
+    for k in sel:
+        counts[int(np.floor(local[k, 0])) - i0, int(np.floor(local[k, 1])) - j0] += 1.0
+    return counts
+
+
+@njit
+def _at_columns(local, grid, i0, j0):
+    """Per point: the value of ``grid`` (from column (i0, j0)) at its 1 m column; 1 off the grid."""
+    out = np.ones(len(local))
+    nx, ny = grid.shape
+    for k in range(len(local)):
+        i = int(np.floor(local[k, 0])) - i0
+        j = int(np.floor(local[k, 1])) - j0
+        if 0 <= i < nx and 0 <= j < ny:
+            out[k] = grid[i, j]
+    return out
 
 
 def canopy_density(cloud: PointCloud, local: np.ndarray, crown: np.ndarray) -> float:
@@ -462,27 +494,55 @@ def _under_apex(centre: np.ndarray, apex_height: np.ndarray, top_xy: np.ndarray,
     return out
 
 
-def canopy_cover_at_tops(local: np.ndarray, height: np.ndarray, crown: np.ndarray,
-                         top_xy: np.ndarray, top_height: np.ndarray, reach_m: np.ndarray) -> np.ndarray:
-    """Per top: the share of the observed 1 m columns within ``reach_m`` of it whose canopy
-    reaches half the top's height.  A column is observed when any point (ground too) falls in it;
-    columns are whole metres of the local frame (anchored on a global grid by the pipeline), so
-    the value depends on the neighbourhood only, never on the tile.  Sylva, not in Hu et al."""
-    out = np.ones(len(top_xy))
-    if len(top_xy) == 0 or not crown.any():
-        return out
-    ij_all = np.floor(local[:, :2]).astype(np.int64)
-    lo = coord_min(ij_all)
-    shape = tuple((coord_max(ij_all) - lo + 1).tolist())
+@dataclass(frozen=True)
+class CanopyColumns:
+    """The 1 m columns of a tile for :func:`canopy_cover`: ``observed`` (any point, ground too, falls
+    in it) and ``canopy`` (the height of its highest crown point, 0 for none), cell (i, j) being the
+    column of local metres ``lo + (i, j)``."""
+
+    lo: np.ndarray
+    observed: np.ndarray
+    canopy: np.ndarray
+
+
+def canopy_columns(local: np.ndarray, height: np.ndarray, crown: np.ndarray):
+    """The :class:`CanopyColumns` of the points, gridded in one pass; None when they hold no crown
+    point or their extent is too sparse for a grid (:func:`grid_fits`), where every cover is 1."""
+    if not crown.any():
+        return None
+    lo = np.floor(coord_min(local[:, :2])).astype(np.int64)
+    shape = tuple((np.floor(coord_max(local[:, :2])).astype(np.int64) - lo + 1).tolist())
     if not grid_fits(shape, len(local)):     # a sparse extent: taken as closed
+        return None
+    observed, canopy = _grid_columns(local, height, crown, int(lo[0]), int(lo[1]), *shape)
+    return CanopyColumns(lo, observed, canopy)
+
+
+@njit
+def _grid_columns(local, height, crown, i0, j0, nx, ny):
+    """(observed, canopy) grids of :class:`CanopyColumns` (floor(x) - i0, floor(y) - j0 per point)."""
+    observed = np.zeros((nx, ny), dtype=np.bool_)
+    canopy = np.zeros((nx, ny))
+    for k in range(len(height)):
+        i = int(np.floor(local[k, 0])) - i0
+        j = int(np.floor(local[k, 1])) - j0
+        observed[i, j] = True
+        if crown[k] and height[k] > canopy[i, j]:
+            canopy[i, j] = height[k]
+    return observed, canopy
+
+
+def canopy_cover(columns, top_xy: np.ndarray, top_height: np.ndarray, reach_m: np.ndarray) -> np.ndarray:
+    """Per top: the share of the observed 1 m columns within ``reach_m`` of it whose canopy
+    reaches half the top's height (``columns``: :func:`canopy_columns`, None: 1).  Columns are
+    whole metres of the local frame (anchored on a global grid by the pipeline), so the value
+    depends on the neighbourhood only, never on the tile.  Sylva, not in Hu et al."""
+    out = np.ones(len(top_xy))
+    if len(top_xy) == 0 or columns is None:
         return out
-    observed = np.zeros(shape, dtype=bool)
-    observed[ij_all[:, 0] - lo[0], ij_all[:, 1] - lo[1]] = True
-    canopy = np.zeros(shape)
-    sel = np.flatnonzero(crown)
-    sel = sel[column_maxima(local[sel, :2], height[sel], 1.0)]      # the highest crown point per column
-    canopy[ij_all[sel, 0] - lo[0], ij_all[sel, 1] - lo[1]] = height[sel]
-    centre = np.floor(top_xy).astype(np.int64) - lo
+    observed, canopy = columns.observed, columns.canopy
+    shape = observed.shape
+    centre = np.floor(top_xy).astype(np.int64) - columns.lo
     radius = np.ceil(reach_m).astype(np.int64)
     for r in np.unique(radius):
         g = np.arange(-r, r + 1)

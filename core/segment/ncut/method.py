@@ -19,7 +19,7 @@ from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
 from .cleanup import (APEX_REACH, TOP_TOLERANCE_M, apex_near_top, attach_free, crown_radius_m, merge_off_centre,
                       merge_plateaus, merge_small, within_crown_reach)
 from .cut import CLOSED_COVER, CLOSED_HEIGHT_M, PLATEAU_REACH, cut_graph
-from .graph import (LOWER_CROWN_REACH, canopy_cover_at_tops, column_maxima, coord_max, coord_min,
+from .graph import (LOWER_CROWN_REACH, canopy_columns, canopy_cover, column_maxima, coord_max, coord_min,
                     local_canopy_density, top_voxels, topless_crowns, voxel_graph)
 from .islands import merge_round_islands
 from .layers import lower_layer_apexes
@@ -127,7 +127,7 @@ class NormalizedCut:
     the higher crown: only a cut dearer than ``always_merge_ncut`` merges it
     (0: off).
     ``open_cover``, ``open_reach``: where the canopy around the higher top is
-    open (:func:`canopy_cover_at_tops` below ``open_cover``; 0: off), the
+    open (:func:`canopy_cover` below ``open_cover``; 0: off), the
     crown-reach merge reaches ``open_reach`` crown radii for a rounded lower
     top (not a steep apex of the :class:`~sylva.core.tops.SteepApex` rule);
     a tree under ``min_tree_points`` whose top is a steep apex farther than
@@ -243,26 +243,33 @@ class NormalizedCut:
         window of a closed canopy)."""
         if density is None:
             density = local_canopy_density(cloud, local, crown)
-        wide = np.full(len(local), float(self.top_window_m))
+        return self._diameters(height, density, share)
+
+    def _diameters(self, height: np.ndarray, density: np.ndarray, share: float = 1.0):
+        """:meth:`windows` of points of these heights and canopy densities."""
+        wide = np.full(len(height), float(self.top_window_m))
         if self.top_window_points > 0:
             wide = np.maximum(wide, 2.0 * np.sqrt(self.top_window_points / (np.pi * density)))
         if self.top_window_crown > 0:
             wide = np.maximum(wide, share * self.top_window_crown * 2.0 * crown_radius_m(height, self.crown_scale))
-        apex = np.zeros(len(local))
+        apex = np.zeros(len(height))
         if self.apex_window_m > 0:
             apex = np.maximum(float(self.apex_window_m),
                               2.0 * np.sqrt(APEX_WINDOW_POINTS / (np.pi * density)))
             apex = np.minimum(apex, wide)
         return wide, apex
 
-    def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None):
+    def _find_tops(self, cloud, local, height, crown, progress, cancelled, density=None, cover=None):
         """Tree tops among the highest point of every TOP_CELL_M column (see step 3): the maxima of
         each point's window and, where the canopy around them is closed, those of the narrower
-        ``closed_window`` one; then the apexes of a lower crown layer (``lower_layer``)."""
+        ``closed_window`` one; then the apexes of a lower crown layer (``lower_layer``).
+        ``density``, ``cover``: :func:`local_canopy_density` and :meth:`_cover` of the cloud."""
         from ...tops import FixedWindow, SteepApex, TreeTops, find_tree_tops, union_tops
 
         if density is None:
             density = local_canopy_density(cloud, local, crown)
+        if cover is None:
+            cover = self._cover(local, height, crown)
         sel = np.flatnonzero(crown)
         search = sel[column_maxima(local[sel, :2], height[sel], TOP_CELL_M)]
         search = search[~self._isolated(cloud, local, crown, search, density)]
@@ -272,24 +279,23 @@ class NormalizedCut:
             rule = SteepApex(float(self.apex_window_m), self.apex_slope, int(self.apex_sectors))
 
         def maxima(share, prog):
-            wide, apex = self.windows(cloud, local, height, crown, density, share)
+            wide, apex = self._diameters(height[search], density[search], share)
             return find_tree_tops(subset, window=FixedWindow(float(self.top_window_m)),
                                   min_height_m=self.min_height_m, progress=prog, cancelled=cancelled,
-                                  isolation_m=None,
-                                  apex=rule, diameters=wide[search],
-                                  apex_diameters=apex[search] if rule is not None else None)
+                                  isolation_m=None, apex=rule, diameters=wide,
+                                  apex_diameters=apex if rule is not None else None)
 
         tops = maxima(1.0, scaled(progress, 0.0, 0.5))
         if self.closed_window < 1 and self.top_window_crown > 0:
             more = maxima(self.closed_window, scaled(progress, 0.5, 1.0))
             xy = (more.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
-            tops = union_tops(tops, more, self._cover(local, height, crown, xy, more.height) >= CLOSED_COVER)
+            tops = union_tops(tops, more, cover(xy, more.height) >= CLOSED_COVER)
         if not self.lower_layer:
             return tops
         check(cancelled)
         top_xy = (tops.xyz[:, :2] - cloud.origin[:2]) * cloud.units.horizontal_m
         apex = sel[lower_layer_apexes(local[sel, :2], height[sel], density[sel], top_xy, tops.height,
-                                      self.crown_scale, lambda xy, h: self._cover(local, height, crown, xy, h))]
+                                      self.crown_scale, cover)]
         more = TreeTops(cloud.xyz[apex], height[apex], np.arange(1, len(apex) + 1, dtype=np.int64), cloud.crs)
         return union_tops(tops, more, np.ones(len(apex), dtype=bool))
 
@@ -317,18 +323,25 @@ class NormalizedCut:
                                       self.apex_slope)]] = False
         return alone
 
-    def _cover(self, local, height, crown, top_xy, top_height):
-        """The canopy cover around each top (local metres) within ``COVER_REACH`` of its allometric
-        crown radii, at most ``COVER_MAX_M`` (:func:`canopy_cover_at_tops`)."""
-        reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
-        return canopy_cover_at_tops(local, height, crown, top_xy, top_height, reach)
+    def _cover(self, local, height, crown):
+        """``cover(top_xy, top_height)``: the canopy cover around each top (local metres) within
+        ``COVER_REACH`` of its allometric crown radii, at most ``COVER_MAX_M``
+        (:func:`canopy_cover`); the cloud's columns are gridded once, on the first call."""
+        columns = []
 
-    def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel):
+        def cover(top_xy, top_height):
+            if not columns:
+                columns.append(canopy_columns(local, height, crown))
+            reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
+            return canopy_cover(columns[0], top_xy, top_height, reach)
+        return cover
+
+    def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel, cover):
         """(canopy cover around each top, whether it is a steep apex) for the open-canopy reach of the
-        crown-reach merge; (None, None) when ``open_cover`` is 0."""
+        crown-reach merge; (None, None) when ``open_cover`` is 0.  ``cover``: :meth:`_cover`."""
         if self.open_cover <= 0:
             return None, None
-        cover = self._cover(local, height, crown, graph.xyz[top_voxel, :2], top_height)
+        cover = cover(graph.xyz[top_voxel, :2], top_height)
         steep = np.zeros(len(top_id), dtype=bool)
         if self.apex_window_m > 0:
             from ...tops import SteepApex, steep_tops
@@ -359,10 +372,11 @@ class NormalizedCut:
         report(progress, 0.1, "finding tree tops")
         # canopy first returns per m2 around every point (top windows, minimum tree size)
         rho = local_canopy_density(cloud, local, crown)
+        cover = self._cover(local, height, crown)
         found = tops is None
         if tops is None and graph.n:
             tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
-                                   cancelled, rho)
+                                   cancelled, rho, cover)
         local_tops = resolve_tops(cloud, tops, self.min_height_m, self.top_window_m,
                                   scaled(progress, 0.1, 0.2), cancelled)
         check(cancelled)
@@ -379,7 +393,8 @@ class NormalizedCut:
             top_voxel = np.r_[top_voxel, extra]
             top_id = np.r_[top_id, top_id.max(initial=0) + 1 + np.arange(len(extra))]
             top_height = np.r_[top_height, extra_h]
-        cover, steep = self._openness(local, height, crown, local_tops, top_id, top_height, graph, top_voxel)
+        cover, steep = self._openness(local, height, crown, local_tops, top_id, top_height, graph, top_voxel,
+                                      cover)
         # the minimum size of a tree, in points, at the scan's density around its top
         voxel_rho = np.zeros(graph.n)
         is_top = np.zeros(graph.n, dtype=bool)
