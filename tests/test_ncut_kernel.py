@@ -189,7 +189,8 @@ def test_start_boundary_ncut_and_saddle_of_every_pair_are_eq1(stand):
     """The NCut (Eq. 1) of the start boundary of every touching pair, and its saddle (the highest boundary
     edge, at the lower of its two voxels), counted region by region."""
     _, _, graph, tops, region, pairs = stand
-    ncut, saddle = NX._pair_ncut(graph, region, pairs, len(tops))
+    mine, ncut, saddle = NX._pair_ncut(graph, region, len(tops))
+    assert np.array_equal(mine, pairs)      # every touching pair, as the edges list them
     W = graph.W
     a, b = graph.edges[:, 0], graph.edges[:, 1]
     z = graph.xyz[:, 2]

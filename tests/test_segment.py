@@ -1113,7 +1113,8 @@ def test_start_boundary_ncut_and_saddle_match_eq1():
     crown = (h >= 2.0) & ~ground_mask(cloud, h)
     g = voxel_graph(cloud, cloud.local_xyz(), h, crown, NormalizedCut())
     region = (g.xyz[:, 0] > np.median(g.xyz[:, 0])).astype(np.int64)
-    ncut, saddle = _pair_ncut(g, region, np.array([[0, 1]]), 2)
+    pairs, ncut, saddle = _pair_ncut(g, region, 2)
+    assert pairs.tolist() == [[0, 1]]
     W = g.W.toarray()
     A, B = region == 0, region == 1
     cut = W[np.ix_(A, B)].sum()

@@ -48,7 +48,16 @@ def tree_relative(xy, elev, height, labels):
     top = _label_maxima(xy, elev, labels, size)
     gnd = np.zeros(size)
     gnd[labels[top]] = elev[top] - height[top]
-    return np.where(labels > 0, elev - gnd[labels], height), gnd
+    return _above(elev, height, labels, gnd), gnd
+
+
+@njit
+def _above(elev, height, labels, gnd):
+    """Per point: ``elev - gnd[label]`` for a labelled point, its ``height`` for another."""
+    out = np.empty(len(labels))
+    for i in range(len(labels)):
+        out[i] = elev[i] - gnd[labels[i]] if labels[i] > 0 else height[i]
+    return out
 
 
 def _tops_within(xy, height, labels, bounds, scale):
@@ -617,6 +626,26 @@ def _joined_to_top(a, b, vlabel, top_voxel, top_id):
     return out
 
 
+@njit
+def _edges_from_free(a, b, w, vlabel):
+    """(src, dst, w) of the edges (a, b, w) read from their unlabelled end (``vlabel`` 0): those
+    with a free ``a`` as (a, b), then those with a free ``b`` as (b, a), each in edge order."""
+    n = 0
+    for e in range(len(a)):
+        n += int(vlabel[a[e]] == 0) + int(vlabel[b[e]] == 0)
+    src = np.empty(n, dtype=np.int64)
+    dst = np.empty(n, dtype=np.int64)
+    ww = np.empty(n)
+    t = 0
+    for side in range(2):
+        for e in range(len(a)):
+            u, v = (a[e], b[e]) if side == 0 else (b[e], a[e])
+            if vlabel[u] == 0:
+                src[t], dst[t], ww[t] = u, v, w[e]
+                t += 1
+    return src, dst, ww
+
+
 def clean_labels(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
                  top_id: np.ndarray, top_height: np.ndarray, tolerance_m: float,
                  attach_m: float, seeds=None) -> np.ndarray:
@@ -648,11 +677,7 @@ def clean_labels(graph: VoxelGraph, vlabel: np.ndarray, top_voxel: np.ndarray,
     seed_voxel, seed_id = (top_voxel, top_id) if seeds is None else seeds
     vlabel = np.where(_joined_to_top(a, b, vlabel, seed_voxel, seed_id), vlabel, 0)
     # flood the unlabelled voxels from labelled neighbours, strongest edge first
-    free_a = vlabel[a] == 0            # only edges into unlabelled voxels matter
-    free_b = vlabel[b] == 0
-    src = np.concatenate([a[free_a], b[free_b]])
-    dst = np.concatenate([b[free_a], a[free_b]])
-    ww = np.concatenate([w[free_a], w[free_b]])
+    src, dst, ww = _edges_from_free(a, b, w, vlabel)     # only edges out of unlabelled voxels matter
     while len(src):
         cand = (vlabel[src] == 0) & (vlabel[dst] > 0)
         cand &= z[src] <= height_of[vlabel[dst]] + tolerance_m

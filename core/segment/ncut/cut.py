@@ -341,22 +341,22 @@ def _nearest_source(indptr, indices, w, z, climb, sources):
     return owner
 
 
-def _pair_ncut(graph: VoxelGraph, region: np.ndarray, pairs: np.ndarray, k: int) -> np.ndarray:
-    """NCut (Eq. 1) of the start boundary of every pair of regions, in one pass.
+def _pair_ncut(graph: VoxelGraph, region: np.ndarray, k: int):
+    """(pairs, ncut, saddle): every pair (p, q), p < q, of the ``k`` regions an edge joins (ascending),
+    the NCut (Eq. 1) of its start boundary and its saddle, in one pass over the edges.
 
     For regions p, q: cut = w(p, q); the association of p within the union is
     2 w(p, p) + w(p, q) (every internal edge counts from both ends)."""
     inner, key, wb, zb = _region_edges(graph.edges[:, 0], graph.edges[:, 1], graph.weights, region,
                                        np.ascontiguousarray(graph.xyz[:, 2]), k)
     ukey, inv = np.unique(key, return_inverse=True)
-    cut_u = np.bincount(inv, weights=wb, minlength=len(ukey))
-    pos = np.searchsorted(ukey, pairs[:, 0] * k + pairs[:, 1])
-    cut = cut_u[pos]
+    pairs = np.column_stack([ukey // k, ukey % k])
+    cut = np.bincount(inv, weights=wb, minlength=len(ukey))
     vol_p = 2.0 * inner[pairs[:, 0]] + cut
     vol_q = 2.0 * inner[pairs[:, 1]] + cut
     ncut = cut / np.maximum(vol_p, 1e-300) + cut / np.maximum(vol_q, 1e-300)
     # saddle: the highest boundary edge (the lower of its two voxel heights)
-    return ncut, _group_max(inv, zb, len(ukey))[pos]
+    return pairs, ncut, _group_max(inv, zb, len(ukey))
 
 
 @njit
@@ -461,18 +461,14 @@ def cut_graph(graph: VoxelGraph, top_voxel: np.ndarray, top_id: np.ndarray,
        wins when a voxel gets several).
     """
     region = _geodesic_partition(graph, top_voxel, params.climb)
-    a, b = graph.edges[:, 0], graph.edges[:, 1]
-    ra, rb = region[a], region[b]
-    touch = (ra >= 0) & (rb >= 0) & (ra != rb)
-    pairs = np.unique(np.sort(np.column_stack([ra[touch], rb[touch]]), axis=1), axis=0)
     k = len(top_voxel)
+    pairs, ncut_start, saddle = _pair_ncut(graph, region, k)
     parent = np.arange(k)
     best_ncut = np.full(graph.n, np.inf)
     proposal = region.copy()
     partner = np.full(k, -1, dtype=np.int64)    # the top each lower top merges into
     partner_dip = np.full(k, np.inf)
     if len(pairs):
-        ncut_start, saddle = _pair_ncut(graph, region, pairs, k)
         order = np.argsort(region, kind="stable")
         starts = np.searchsorted(region[order], np.arange(-1, k + 1))
         W = graph.W
