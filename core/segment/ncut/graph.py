@@ -51,16 +51,13 @@ def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
     x = local[idx, 0]
     y = local[idx, 1]
     z = height[idx]
-    ix = np.floor(x / pitch).astype(np.int64)
-    iy = np.floor(y / pitch).astype(np.int64)
-    iz = np.floor(z / pitch).astype(np.int64)
-    ij0 = np.array([ix.min(), iy.min()])
-    ix -= ij0[0]
-    iy -= ij0[1]
-    ny = int(iy.max()) + 1
-    nz = int(iz.max()) + 1
-    key = (ix * ny + iy) * nz + iz
-    ukey, inv = np.unique(key, return_inverse=True)
+    ix, iy, iz, i0, j0 = _voxel_cells(x, y, z, float(pitch))
+    ij0 = np.array([i0, j0])
+    nx, ny, nz = int(ix.max()) + 1, int(iy.max()) + 1, int(iz.max()) + 1
+    if grid_fits((nx, ny), len(idx)):
+        ukey, inv = _voxel_keys(ix, iy, iz, nx, ny, nz)
+    else:     # a sparse extent: a sort instead of the column grid
+        ukey, inv = np.unique((ix * ny + iy) * nz + iz, return_inverse=True)
     m = len(ukey)
     count = np.bincount(inv, minlength=m).astype(np.float64)
 
@@ -102,6 +99,69 @@ def voxel_graph(cloud: PointCloud, local: np.ndarray, height: np.ndarray,
     W.has_sorted_indices = True
     return VoxelGraph(xyz=vxyz, ijk=ijk, ij0=ij0, point_voxel=inv, W=W,
                       edges=edges, weights=w)
+
+
+@njit
+def _voxel_cells(x, y, z, pitch):
+    """(ix, iy, iz, i0, j0): every point's voxel (floor of its coordinates / ``pitch``), columns
+    counted from the lowest (i0, j0)."""
+    n = len(x)
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    iz = np.empty(n, dtype=np.int64)
+    i0 = j0 = 0
+    for k in range(n):
+        ix[k] = int(np.floor(x[k] / pitch))
+        iy[k] = int(np.floor(y[k] / pitch))
+        iz[k] = int(np.floor(z[k] / pitch))
+        if k == 0 or ix[k] < i0:
+            i0 = ix[k]
+        if k == 0 or iy[k] < j0:
+            j0 = iy[k]
+    for k in range(n):
+        ix[k] -= i0
+        iy[k] -= j0
+    return ix, iy, iz, i0, j0
+
+
+@njit
+def _voxel_keys(ix, iy, iz, nx, ny, nz):
+    """``np.unique((ix * ny + iy) * nz + iz, return_inverse=True)`` by two counting sorts (by layer,
+    then by column, stable): O(n) on the column grid instead of a sort of every point."""
+    n = len(ix)
+    by_z = np.zeros(nz + 1, dtype=np.int64)
+    for k in range(n):
+        by_z[iz[k] + 1] += 1
+    for c in range(nz):
+        by_z[c + 1] += by_z[c]
+    order_z = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        order_z[by_z[iz[k]]] = k
+        by_z[iz[k]] += 1
+    by_col = np.zeros(nx * ny + 1, dtype=np.int64)
+    for k in range(n):
+        by_col[ix[k] * ny + iy[k] + 1] += 1
+    for c in range(nx * ny):
+        by_col[c + 1] += by_col[c]
+    order = np.empty(n, dtype=np.int64)
+    for t in range(n):
+        k = order_z[t]
+        c = ix[k] * ny + iy[k]
+        order[by_col[c]] = k
+        by_col[c] += 1
+    inv = np.empty(n, dtype=np.int64)
+    ukey = np.empty(n, dtype=np.int64)
+    m = -1
+    last = -1
+    for t in range(n):
+        k = order[t]
+        key = (ix[k] * ny + iy[k]) * nz + iz[k]
+        if key != last:
+            m += 1
+            ukey[m] = key
+            last = key
+        inv[k] = m
+    return ukey[:m + 1].copy(), inv
 
 
 @njit
