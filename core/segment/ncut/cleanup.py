@@ -421,7 +421,7 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
     usable[tid[hi[near]]] = True
     usable[tid[lo[near]]] = True
     # of those, the crowns' caps: only they can touch within the prominence of a level top
-    cap = np.flatnonzero(usable[labels] & (height >= top_h[labels] - (prominence + plateau) * judged[labels]))
+    cap = np.flatnonzero(_crown_caps(labels, height, usable, top_h, (prominence + plateau) * judged))
     if len(cap) < 2:
         return labels
     pts = np.column_stack([xy[cap], height[cap] + gnd[labels[cap]]]).astype(np.float64)   # elevations
@@ -434,6 +434,16 @@ def merge_plateaus(xy: np.ndarray, height: np.ndarray, labels: np.ndarray, bound
             break
         target = nxt
     return target[labels].astype(labels.dtype)
+
+
+@njit
+def _crown_caps(labels, height, usable, top_h, depth):
+    """Mask of the points of the ``usable`` labels at most ``depth[label]`` below their top ``top_h[label]``."""
+    out = np.zeros(len(labels), dtype=np.bool_)
+    for i in range(len(labels)):
+        lab = labels[i]
+        out[i] = usable[lab] and height[i] >= top_h[lab] - depth[lab]
+    return out
 
 
 @njit
