@@ -5,6 +5,7 @@ neighbouring tops (:mod:`.cut`), cleans the trees up (:mod:`.cleanup`) and label
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -327,21 +328,21 @@ class NormalizedCut:
         """``cover(top_xy, top_height)``: the canopy cover around each top (local metres) within
         ``COVER_REACH`` of its allometric crown radii, at most ``COVER_MAX_M``
         (:func:`canopy_cover`); the cloud's columns are gridded once, on the first call."""
-        columns = []
+        @functools.cache
+        def columns():
+            return canopy_columns(local, height, crown)
 
         def cover(top_xy, top_height):
-            if not columns:
-                columns.append(canopy_columns(local, height, crown))
             reach = np.minimum(COVER_REACH * crown_radius_m(top_height, self.crown_scale), COVER_MAX_M)
-            return canopy_cover(columns[0], top_xy, top_height, reach)
+            return canopy_cover(columns(), top_xy, top_height, reach)
         return cover
 
-    def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel, cover):
+    def _openness(self, local, height, crown, local_tops, top_id, top_height, graph, top_voxel, cover_of):
         """(canopy cover around each top, whether it is a steep apex) for the open-canopy reach of the
-        crown-reach merge; (None, None) when ``open_cover`` is 0.  ``cover``: :meth:`_cover`."""
+        crown-reach merge; (None, None) when ``open_cover`` is 0.  ``cover_of``: :meth:`_cover`."""
         if self.open_cover <= 0:
             return None, None
-        cover = cover(graph.xyz[top_voxel, :2], top_height)
+        cover = cover_of(graph.xyz[top_voxel, :2], top_height)
         steep = np.zeros(len(top_id), dtype=bool)
         if self.apex_window_m > 0:
             from ...tops import SteepApex, steep_tops
@@ -372,11 +373,11 @@ class NormalizedCut:
         report(progress, 0.1, "finding tree tops")
         # canopy first returns per m2 around every point (top windows, minimum tree size)
         rho = local_canopy_density(cloud, local, crown)
-        cover = self._cover(local, height, crown)
+        cover_of = self._cover(local, height, crown)
         found = tops is None
         if tops is None and graph.n:
             tops = self._find_tops(cloud, local, height, crown, scaled(progress, 0.1, 0.2),
-                                   cancelled, rho, cover)
+                                   cancelled, rho, cover_of)
         local_tops = resolve_tops(cloud, tops, self.min_height_m, self.top_window_m,
                                   scaled(progress, 0.1, 0.2), cancelled)
         check(cancelled)
@@ -394,7 +395,7 @@ class NormalizedCut:
             top_id = np.r_[top_id, top_id.max(initial=0) + 1 + np.arange(len(extra))]
             top_height = np.r_[top_height, extra_h]
         cover, steep = self._openness(local, height, crown, local_tops, top_id, top_height, graph, top_voxel,
-                                      cover)
+                                      cover_of)
         # the minimum size of a tree, in points, at the scan's density around its top
         voxel_rho = np.zeros(graph.n)
         is_top = np.zeros(graph.n, dtype=bool)
