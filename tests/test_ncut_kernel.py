@@ -8,6 +8,8 @@ and the whole segmentation against truth and golden figures.
 * the start-boundary NCut and saddle of every touching pair: Eq. 1 counted directly;
 * (I - M) X, the clean-up's union-find and grid searches, the column maxima and every tree's top:
   scipy / numpy / a direct search;
+* the one-pass kernels that replaced whole-cloud numpy passes (voxel keys, canopy columns and density, steep
+  tops, apex-edge cells, free edges): the numpy forms they replaced, or a direct count;
 * the whole method: the 25 cones of a synthetic stand give 25 trees, one per cone, and the shipped
   sample its golden number of trees and detection scores within tolerances.
 
@@ -267,6 +269,82 @@ def test_column_maxima_grid_equals_sorts():
     np.testing.assert_array_equal(NG.column_maxima(xy, z, 0.35), np.sort(order[first]))
     far = np.r_[xy, [[1e6, 1e6]]]                             # a huge extent takes the sorting path
     assert len(NG.column_maxima(far, np.r_[z, 1.0], 0.35)) == len(first) + 1
+
+
+def test_voxel_keys_are_numpys_unique():
+    """The voxel keys by two counting sorts are ``np.unique(key, return_inverse=True)``, cells from floor(x / pitch)."""
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-30, 45, 30000), rng.uniform(5, 60, 30000)
+    z = np.round(rng.uniform(2, 25, 30000), 1)
+    x[:50] = x[50]                                             # a column of many points
+    ix, iy, iz, i0, j0 = NG._voxel_cells(x, y, z, 0.5)
+    fx, fy = np.floor(x / 0.5).astype(np.int64), np.floor(y / 0.5).astype(np.int64)
+    assert (i0, j0) == (fx.min(), fy.min())
+    assert np.array_equal(ix, fx - fx.min()) and np.array_equal(iy, fy - fy.min())
+    assert np.array_equal(iz, np.floor(z / 0.5).astype(np.int64))
+    nx, ny, nz = ix.max() + 1, iy.max() + 1, iz.max() + 1
+    ukey, inv = NG._voxel_keys(ix, iy, iz, nx, ny, nz)
+    ref_key, ref_inv = np.unique((ix * ny + iy) * nz + iz, return_inverse=True)
+    assert np.array_equal(ukey, ref_key) and np.array_equal(inv, ref_inv)
+
+
+def test_canopy_columns_and_density_count_every_1m_column():
+    """The canopy grid (every observed column, the highest crown point of each) and the canopy density around a
+    point, counted directly."""
+    from sylva.core.cloud import PointCloud
+
+    rng = np.random.default_rng(4)
+    local = np.c_[rng.uniform(0, 30, (5000, 2)), rng.uniform(0, 1, 5000)]
+    h = np.round(rng.uniform(0, 20, 5000), 1)
+    crown = h >= 2.0
+    cols = NG.canopy_columns(local, h, crown)
+    ij = np.floor(local[:, :2]).astype(np.int64) - cols.lo
+    for i, j in [(0, 0), (7, 12), (29, 29), (15, 3)]:
+        here = (ij[:, 0] == i) & (ij[:, 1] == j)
+        assert cols.observed[i, j] == here.any()
+        assert cols.canopy[i, j] == h[here & crown].max(initial=0.0)
+    dens = NG.local_canopy_density(PointCloud(local), local, crown)
+    for k in (0, 1, 2500):
+        box = np.all(np.abs(np.floor(local[crown, :2]) - np.floor(local[k, :2])) <= NG.DENSITY_HALF_WIDTH_M, axis=1)
+        occupied = len(np.unique(np.floor(local[crown][box, :2]), axis=0))
+        assert dens[k] == pytest.approx(box.sum() / occupied)
+
+
+def test_steep_tops_judge_the_tops_against_the_points_surface():
+    """Joining the tops to the points' own column maxima is joining them to every point (same ties)."""
+    from sylva.core.tops import SteepApex, _steep, steep_tops
+
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 30, (8000, 2))
+    h = np.round(rng.uniform(0, 4, 8000), 1)
+    h[xy[:, 0] > 15] += 6.0                                  # half the ground high: tops there are not steep
+    top_xy = rng.uniform(2, 28, (40, 2))
+    top_h = rng.uniform(8, 12, 40)
+    rule = SteepApex(2.0, 1.0, 3)
+    every = _steep(np.r_[xy, top_xy], np.r_[h, top_h], np.arange(8000, 8040), rule)
+    assert 0 < every.sum() < 40
+    assert np.array_equal(steep_tops(xy, h, top_xy, top_h, rule), every)
+
+
+def test_around_cells_and_free_edges_equal_their_numpy_forms():
+    """The apex-edge cell blocks (``np.isin`` on cell keys) and the flood's free edges (masked concatenations)."""
+    rng = np.random.default_rng(8)
+    xy = rng.uniform(0, 50, (20000, 2))
+    labels = rng.integers(0, 4, 20000).astype(np.int32)
+    high = rng.integers(0, 20000, 30)
+    cell = np.floor(xy).astype(np.int64)
+    cell -= cell.min(axis=0) - 1
+    rows = int(cell[:, 1].max()) + 2
+    step = np.array([-1, 0, 1])
+    around = (cell[high, 0, None, None] + step[:, None]) * rows + cell[high, 1, None, None] + step
+    expected = (labels > 0) & np.isin(cell[:, 0] * rows + cell[:, 1], around.ravel())
+    assert np.array_equal(NC._around_cells(xy, labels, high, 1.0), expected)
+    a, b = rng.integers(0, 500, 3000), rng.integers(0, 500, 3000)
+    w, vlabel = rng.uniform(size=3000), rng.integers(0, 3, 500)
+    fa, fb = vlabel[a] == 0, vlabel[b] == 0
+    src, dst, ww = NC._edges_from_free(a, b, w, vlabel)
+    assert np.array_equal(src, np.r_[a[fa], b[fb]]) and np.array_equal(dst, np.r_[b[fa], a[fb]])
+    assert np.array_equal(ww, np.r_[w[fa], w[fb]])
 
 
 def test_tops_of_is_the_highest_point_of_every_tree():
