@@ -185,7 +185,7 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
     r2 = radius * radius
     ng = len(groups) - 1
     cap = max(16, 8 * m)
-    ed = np.empty((cap, 2), dtype=np.int64)
+    ed = np.empty((cap, 2), dtype=np.int32)      # voxel ids < 2**31, as in the CSR indices
     ew = np.empty(cap, dtype=np.float64)
     ne = 0
     side = 2 * reach + 1
@@ -239,7 +239,7 @@ def _lattice_graph(xyz, feat, groups, iz, ucol, cstart, ny, pitch, radius, heigh
                         expo += np.sqrt(f2)
                     if ne == cap:
                         cap *= 2
-                        grown = np.empty((cap, 2), dtype=np.int64)
+                        grown = np.empty((cap, 2), dtype=np.int32)
                         grown[:ne] = ed[:ne]
                         ed = grown
                         grown_w = np.empty(cap, dtype=np.float64)
