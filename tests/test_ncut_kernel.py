@@ -326,7 +326,7 @@ def test_steep_tops_judge_the_tops_against_the_points_surface():
     assert np.array_equal(steep_tops(xy, h, top_xy, top_h, rule), every)
 
 
-def test_around_cells_and_free_edges_equal_their_numpy_forms():
+def test_blocks_around_and_free_edges_equal_their_numpy_forms():
     """The apex-edge cell blocks (``np.isin`` on cell keys) and the flood's free edges (masked concatenations)."""
     rng = np.random.default_rng(8)
     xy = rng.uniform(0, 50, (20000, 2))
@@ -338,7 +338,7 @@ def test_around_cells_and_free_edges_equal_their_numpy_forms():
     step = np.array([-1, 0, 1])
     around = (cell[high, 0, None, None] + step[:, None]) * rows + cell[high, 1, None, None] + step
     expected = (labels > 0) & np.isin(cell[:, 0] * rows + cell[:, 1], around.ravel())
-    assert np.array_equal(NC._around_cells(xy, labels, high, 1.0), expected)
+    assert np.array_equal(NC.in_blocks_around(xy, labels > 0, np.ascontiguousarray(xy[high]), 1.0), expected)
     a, b = rng.integers(0, 500, 3000), rng.integers(0, 500, 3000)
     w, vlabel = rng.uniform(size=3000), rng.integers(0, 3, 500)
     fa, fb = vlabel[a] == 0, vlabel[b] == 0

@@ -212,7 +212,7 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
     whole = np.full(size, -np.inf)
     whole[labels[apex]] = elev[apex]
     # the labelled points of the APEX_EDGE_M cells around the high points (a 3 x 3 block each)
-    other = np.flatnonzero(_around_cells(xy, labels, high, APEX_EDGE_M))
+    other = np.flatnonzero(in_blocks_around(xy, labels > 0, np.ascontiguousarray(xy[high]), APEX_EDGE_M))
     kd = cKDTree(xy[other])
     out = labels.copy()
     for p, idx in zip(high, kd.query_ball_point(xy[high], APEX_EDGE_M)):
@@ -227,19 +227,20 @@ def apex_near_top(xy: np.ndarray, elev: np.ndarray, labels: np.ndarray, top_xy: 
 
 
 @njit
-def _around_cells(xy, labels, high, cell):
-    """Mask of the labelled points in the 3 x 3 blocks of ``cell`` columns around the points ``high``
-    (a hash set of the blocks' columns: one pass, whatever the extent)."""
+def in_blocks_around(xy, keep, centres, cell):
+    """Mask of the points (``xy``, first two columns) with ``keep`` in the 3 x 3 blocks of ``cell``
+    columns around the ``centres``: every such point within ``cell`` of a centre, and a few more
+    (a hash set of the blocks' columns: one pass over the points, whatever the extent)."""
     marked = set()
-    for p in high:
-        i = int(np.floor(xy[p, 0] / cell))
-        j = int(np.floor(xy[p, 1] / cell))
+    for p in range(len(centres)):
+        i = int(np.floor(centres[p, 0] / cell))
+        j = int(np.floor(centres[p, 1] / cell))
         for di in range(-1, 2):
             for dj in range(-1, 2):
                 marked.add((i + di, j + dj))
-    out = np.zeros(len(labels), dtype=np.bool_)
-    for k in range(len(labels)):
-        if labels[k] > 0:
+    out = np.zeros(len(keep), dtype=np.bool_)
+    for k in range(len(keep)):
+        if keep[k]:
             out[k] = (int(np.floor(xy[k, 0] / cell)), int(np.floor(xy[k, 1] / cell))) in marked
     return out
 

@@ -17,8 +17,8 @@ from ...cloud import PointCloud
 from ...progress import CancelCheck, Progress, check, report, scaled
 from ...tops import MIN_TREE_HEIGHT_M, MIN_TREE_POINTS
 from ..base import column_keys, ground_mask, label_columns_below, resolve_tops
-from .cleanup import (APEX_REACH, TOP_TOLERANCE_M, apex_near_top, attach_free, crown_radius_m, merge_off_centre,
-                      merge_plateaus, merge_small, within_crown_reach)
+from .cleanup import (APEX_REACH, TOP_TOLERANCE_M, apex_near_top, attach_free, crown_radius_m, in_blocks_around,
+                      merge_off_centre, merge_plateaus, merge_small, within_crown_reach)
 from .cut import CLOSED_COVER, CLOSED_HEIGHT_M, PLATEAU_REACH, cut_graph
 from .graph import (LOWER_CROWN_REACH, canopy_columns, canopy_cover, column_maxima, coord_max, coord_min,
                     local_canopy_density, top_voxels, topless_crowns, voxel_graph)
@@ -320,7 +320,7 @@ class NormalizedCut:
         sparse = reach > ISOLATION_M
         if sparse.any():
             cand, reach = cand[sparse], reach[sparse]
-            alone[cand[_steep_support(local, np.flatnonzero(crown), local[search[cand]], reach,
+            alone[cand[_steep_support(local, crown, local[search[cand]], reach,
                                       self.apex_slope)]] = False
         return alone
 
@@ -473,29 +473,14 @@ class NormalizedCut:
         return apex_near_top(xy, elev, labels, graph.xyz[top_voxel, :2], voxel_label[top_voxel], reach)
 
 
-def _steep_support(local: np.ndarray, crown_idx: np.ndarray, q: np.ndarray, reach: np.ndarray,
+def _steep_support(local: np.ndarray, crown: np.ndarray, q: np.ndarray, reach: np.ndarray,
                    slope: float) -> np.ndarray:
     """Per point of ``q`` (local x, y, z): whether a crown point within ``reach`` of it (3-D) lies
     below it at least ``slope`` times as far down as across (a steep crown's next return under its
-    tip).  Only the crown points in the grid cells around ``q`` are searched."""
+    tip).  Only the crown points in the cells around ``q`` are searched (:func:`in_blocks_around`)."""
     from scipy.spatial import cKDTree
 
-    cell = float(reach.max())
-    lo = q[:, :2].min(axis=0) - cell
-    span = q[:, :2].max(axis=0) + cell - lo
-    cell = max(cell, float(span.max()) / 4096.0)
-    nx, ny = (np.floor(span / cell).astype(np.int64) + 1).tolist()
-    near_cell = np.zeros(nx * ny, dtype=bool)
-    ij = np.floor((q[:, :2] - lo) / cell).astype(np.int64)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            i, j = ij[:, 0] + dx, ij[:, 1] + dy
-            ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-            near_cell[i[ok] * ny + j[ok]] = True
-    cij = np.floor((local[crown_idx, :2] - lo) / cell).astype(np.int64)
-    inside = (cij[:, 0] >= 0) & (cij[:, 0] < nx) & (cij[:, 1] >= 0) & (cij[:, 1] < ny)
-    inside[inside] = near_cell[cij[inside, 0] * ny + cij[inside, 1]]
-    pts = local[crown_idx[inside]]
+    pts = local[in_blocks_around(local[:, :2], crown, np.ascontiguousarray(q[:, :2]), float(reach.max()))]
     out = np.zeros(len(q), dtype=bool)
     if len(pts) == 0:
         return out
